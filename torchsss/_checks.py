@@ -1,0 +1,132 @@
+"""Input validation shared by every public function.
+
+Every check raises :class:`TypeError` (wrong kind of object or dtype) or :class:`ValueError` (wrong shape or
+value) with a message that names the argument and says what was expected and what was got. Value checks that
+need to look at tensor data are skipped while a graph is being traced, compiled or exported, so that
+``forward()`` stays exportable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "as_float_tensor",
+    "check_broadcastable",
+    "check_nonnegative",
+    "check_positive",
+    "check_shape",
+    "check_tensor",
+    "compute_dtype",
+    "is_tracing",
+]
+
+_REDUCED = (torch.float16, torch.bfloat16)
+
+
+def is_tracing() -> bool:
+    """True while torch.jit, torch.compile, torch.export or the ONNX exporter is tracing the current call."""
+    return bool(
+        torch.jit.is_tracing()
+        or torch.compiler.is_compiling()
+        or torch.compiler.is_exporting()
+        or torch.onnx.is_in_onnx_export()
+    )
+
+
+def check_tensor(x: object, name: str) -> Tensor:
+    """Return ``x`` if it is a floating-point tensor, else raise TypeError naming ``name``."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    return x
+
+
+def as_float_tensor(x: object, name: str, like: Tensor | None = None) -> Tensor:
+    """Convert a Python number, sequence or tensor to a floating tensor on ``like``'s device.
+
+    Tensors keep their own dtype (promotion happens later, never a silent downcast); Python numbers and
+    sequences take ``like``'s dtype (float32 without ``like``).
+    """
+    if isinstance(x, Tensor):
+        return check_tensor(x, name)
+    if isinstance(x, bool) or not isinstance(x, (int, float, Sequence)):
+        raise TypeError(f"{name}: expected a tensor, a number or a sequence of numbers, got {type(x).__name__}")
+    dtype = like.dtype if like is not None and like.is_floating_point() else torch.get_default_dtype()
+    device = like.device if like is not None else None
+    try:
+        return torch.as_tensor(x, dtype=dtype, device=device)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name}: expected numbers, got {x!r}") from err
+
+
+def compute_dtype(*tensors: Tensor) -> tuple[torch.dtype, torch.dtype]:
+    """Return ``(out_dtype, compute_dtype)`` for a set of floating inputs.
+
+    The output dtype is the promotion of all inputs. float16 and bfloat16 are computed in float32 (the dipole
+    spans too many orders of magnitude for 5- or 8-bit mantissas and exponents) and cast back.
+    """
+    out = tensors[0].dtype
+    for t in tensors[1:]:
+        out = torch.promote_types(out, t.dtype)
+    return out, (torch.float32 if out in _REDUCED else out)
+
+
+def check_broadcastable(**tensors: Tensor) -> torch.Size:
+    """Return the broadcast shape of the named tensors, or raise ValueError listing every shape."""
+    try:
+        return torch.broadcast_shapes(*(t.shape for t in tensors.values()))
+    except RuntimeError as err:
+        shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in tensors.items())
+        raise ValueError(f"shapes do not broadcast (trailing dimension = channels): {shapes}") from err
+
+
+def _report(x: Tensor, bad: Tensor, name: str, expected: str) -> None:
+    if bool(bad.any()):
+        first = x.detach()[bad].flatten()[0].item()
+        raise ValueError(f"{name}: expected {expected}, got {first!r} ({int(bad.sum())} of {x.numel()} entries bad)")
+
+
+def check_nonnegative(x: Tensor, name: str, allow_inf: bool = False) -> None:
+    """Raise ValueError if ``x`` holds a negative, NaN (or, unless allowed, infinite) entry; skipped while tracing."""
+    if is_tracing():
+        return
+    bad = torch.isnan(x) | (x < 0)
+    if not allow_inf:
+        bad |= torch.isinf(x)
+    _report(x, bad, name, "finite values >= 0" if not allow_inf else "values >= 0")
+
+
+def check_positive(x: Tensor, name: str) -> None:
+    """Raise ValueError if ``x`` holds an entry that is <= 0, NaN or infinite; skipped while tracing."""
+    if is_tracing():
+        return
+    _report(x, ~torch.isfinite(x) | (x <= 0), name, "finite values > 0")
+
+
+def check_shape(x: Tensor, name: str, dims: str, **known: int) -> dict[str, int]:
+    """Check ``x`` against a named-dimension pattern such as ``"B,N,3"`` and return the sizes found.
+
+    Letters are free dimensions (bound on first use, also across calls through ``known``); integers must match
+    exactly. Raises ValueError ``"<name>: expected shape (B, N, 3), got (2, 5, 4)"``.
+    """
+    names = [d.strip() for d in dims.split(",")]
+    sizes = dict(known)
+    pattern = "(" + ", ".join(names) + ")"
+    if x.dim() != len(names):
+        raise ValueError(f"{name}: expected shape {pattern} ({len(names)} dims), got {tuple(x.shape)}")
+    for dim_name, size in zip(names, x.shape):
+        if dim_name.isdigit():
+            if size != int(dim_name):
+                raise ValueError(f"{name}: expected shape {pattern}, got {tuple(x.shape)}")
+        elif dim_name in sizes and sizes[dim_name] != size:
+            raise ValueError(
+                f"{name}: expected shape {pattern} with {dim_name}={sizes[dim_name]}, got {tuple(x.shape)}"
+            )
+        else:
+            sizes[dim_name] = int(size)
+    return sizes

@@ -1,0 +1,6 @@
+"""nn.Modules of torchsss: every ``forward()`` takes and returns tensors, so it trains, compiles and exports."""
+
+from torchsss.modules.material import POSITIVE_FLOOR, BurleyMaterial, DipoleMaterial
+from torchsss.modules.profile import DipoleProfile
+
+__all__ = ["POSITIVE_FLOOR", "BurleyMaterial", "DipoleMaterial", "DipoleProfile"]

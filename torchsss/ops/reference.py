@@ -1,0 +1,146 @@
+"""The reference integrator: all pairs of source and receiver points, chunked. Ground truth for every method."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from torchsss._checks import check_nonnegative, check_shape, check_tensor
+
+__all__ = ["pairwise_distance", "reference_radiosity"]
+
+#: Default number of (source, receiver) pairs evaluated at once (per batch element).
+DEFAULT_MAX_PAIRS = 1 << 21
+
+
+def pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
+    """Exact Euclidean distances :math:`|a_m - b_n|` from coordinate differences (no Gram-matrix cancellation).
+
+    The gradient is defined as 0 where two points coincide (the norm is not differentiable there).
+
+    Args:
+        a: :math:`(B, M, 3)` points.
+        b: :math:`(B, N, 3)` points.
+
+    Returns:
+        :math:`(B, M, N, 1)` distances.
+
+    Examples:
+        >>> pairwise_distance(torch.zeros(1, 1, 3), torch.tensor([[[3.0, 4.0, 0.0]]])).flatten().tolist()
+        [5.0]
+    """
+    diff = a.unsqueeze(2) - b.unsqueeze(1)
+    sq = (diff * diff).sum(-1, keepdim=True)
+    pos = sq > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+
+
+def reference_radiosity(
+    src_pos: Tensor,
+    src_irradiance: Tensor,
+    src_area: Tensor,
+    dst_pos: Tensor,
+    profile: Callable[..., Tensor],
+    *,
+    src_distance_scale: Tensor | None = None,
+    src_irradiance_scale: Tensor | None = None,
+    src_ids: Tensor | None = None,
+    dst_ids: Tensor | None = None,
+    max_pairs: int = DEFAULT_MAX_PAIRS,
+) -> Tensor:
+    """Radiosity :math:`B(x_o) = \\sum_i E_i\\, A_i\\, M_{i,i}\\, R(|x_i - x_o| M_{d,i})` over all pairs.
+
+    This is the brute-force quadrature of :math:`B(x_o) = \\int E(x_i) R_d(|x_i - x_o|) dA(x_i)` that every fast
+    method is measured against. Memory stays bounded: at most ``max_pairs`` pairs per batch element are formed
+    at once (receivers and sources are both chunked). Differentiable with respect to the irradiance, the areas,
+    the positions, the modifiers and any parameters ``profile`` closes over.
+
+    Args:
+        src_pos: :math:`(B, N, 3)` source positions in mm.
+        src_irradiance: :math:`(B, N, C)` transmitted irradiance :math:`E_i`.
+        src_area: :math:`(B, N)` or :math:`(B, N, 1)` surface area :math:`A_i` of each source in mm^2 (>= 0).
+        dst_pos: :math:`(B, M, 3)` receiver positions in mm.
+        profile: maps distances :math:`(B, m, n, 1)` (or :math:`(B, m, n, C)` with a distance scale) in mm to
+            :math:`(B, m, n, C)` in mm^-2, e.g. a :class:`~torchsss.DipoleMaterial` or
+            ``functools.partial(dipole_rd, sigma_a=..., sigma_s_prime=..., eta=...)``.
+        src_distance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` distance multiplier :math:`M_d` of
+            each source (Shah eq. 7.4).
+        src_irradiance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` irradiance modulation :math:`M_i`.
+        src_ids, dst_ids: optional :math:`(B, N)` and :math:`(B, M)` integer object ids; pairs with different ids
+            do not interact (Shah 6.4.3). Give both or neither.
+        max_pairs: pair budget per chunk (>= 1).
+
+    Returns:
+        :math:`(B, M, C)` radiosity :math:`B(x_o)` (multiply by :math:`F_t/\\pi` for radiance).
+
+    Raises:
+        TypeError: non-tensor or non-floating inputs, non-integer ids.
+        ValueError: shapes that disagree (the message names the argument), negative areas, bad ``max_pairs``.
+
+    Examples:
+        >>> from functools import partial
+        >>> from torchsss import dipole_rd
+        >>> prof = partial(dipole_rd, sigma_a=torch.tensor([0.01]), sigma_s_prime=torch.tensor([1.0]), eta=1.3)
+        >>> x = torch.rand(1, 100, 3)
+        >>> b = reference_radiosity(x, torch.ones(1, 100, 1), torch.full((1, 100), 0.01), x[:, :10], prof)
+        >>> b.shape
+        torch.Size([1, 10, 1])
+    """
+    for name, t in (("src_pos", src_pos), ("src_irradiance", src_irradiance), ("src_area", src_area),
+                    ("dst_pos", dst_pos)):
+        check_tensor(t, name)
+    dims = check_shape(src_pos, "src_pos", "B,N,3")
+    dims = check_shape(src_irradiance, "src_irradiance", "B,N,C", **dims)
+    if src_area.dim() == 2:
+        src_area = src_area.unsqueeze(-1)
+    check_shape(src_area, "src_area", "B,N,1", **dims)
+    dims = check_shape(dst_pos, "dst_pos", "B,M,3", **dims)
+    check_nonnegative(src_area, "src_area")
+    c = dims["C"]
+    weight = src_irradiance * src_area
+    if src_irradiance_scale is not None:
+        check_tensor(src_irradiance_scale, "src_irradiance_scale")
+        if src_irradiance_scale.dim() != 3 or src_irradiance_scale.shape[-1] not in (1, c):
+            raise ValueError(f"src_irradiance_scale: expected shape (B, N, 1) or (B, N, {c}), "
+                             f"got {tuple(src_irradiance_scale.shape)}")
+        check_shape(src_irradiance_scale, "src_irradiance_scale", f"B,N,{src_irradiance_scale.shape[-1]}", **dims)
+        weight = weight * src_irradiance_scale
+    if src_distance_scale is not None:
+        check_tensor(src_distance_scale, "src_distance_scale")
+        if src_distance_scale.dim() != 3 or src_distance_scale.shape[-1] not in (1, c):
+            raise ValueError(f"src_distance_scale: expected shape (B, N, 1) or (B, N, {c}), "
+                             f"got {tuple(src_distance_scale.shape)}")
+        check_shape(src_distance_scale, "src_distance_scale", f"B,N,{src_distance_scale.shape[-1]}", **dims)
+    if (src_ids is None) != (dst_ids is None):
+        raise ValueError("src_ids, dst_ids: expected both or neither, got only one")
+    if src_ids is not None:
+        for name, ids, pattern in (("src_ids", src_ids, "B,N"), ("dst_ids", dst_ids, "B,M")):
+            if not isinstance(ids, Tensor) or ids.is_floating_point() or ids.is_complex():
+                raise TypeError(f"{name}: expected an integer tensor, got "
+                                f"{ids.dtype if isinstance(ids, Tensor) else type(ids).__name__}")
+            check_shape(ids, name, pattern, **dims)
+    if isinstance(max_pairs, bool) or not isinstance(max_pairs, int) or max_pairs < 1:
+        raise ValueError(f"max_pairs: expected an int >= 1, got {max_pairs!r}")
+
+    b, n, m = dims["B"], dims["N"], dims["M"]
+    dtype = torch.promote_types(torch.promote_types(src_pos.dtype, dst_pos.dtype), weight.dtype)
+    out = []
+    m_chunk = max(1, min(m, 4096, max_pairs))
+    n_chunk = max(1, min(n, max_pairs // m_chunk))
+    for m0 in range(0, m, m_chunk):
+        m1 = min(m, m0 + m_chunk)
+        acc = torch.zeros(b, m1 - m0, c, dtype=dtype, device=dst_pos.device)
+        for n0 in range(0, n, n_chunk):
+            n1 = min(n, n0 + n_chunk)
+            r = pairwise_distance(dst_pos[:, m0:m1], src_pos[:, n0:n1])  # (B, m, n, 1)
+            if src_distance_scale is not None:
+                r = r * src_distance_scale[:, None, n0:n1]
+            kern = profile(r)  # (B, m, n, C)
+            if src_ids is not None:
+                same = dst_ids[:, m0:m1, None] == src_ids[:, None, n0:n1]
+                kern = kern * same.unsqueeze(-1).to(kern.dtype)
+            acc = acc + (kern * weight[:, None, n0:n1]).sum(2)
+        out.append(acc)
+    return torch.cat(out, dim=1)

@@ -1,0 +1,68 @@
+"""Physics shared by every method: the dipole profile, Fresnel terms, budgets, presets, lookup tables.
+
+Pure functions of tensors; no meshes, no nn.Modules. Lengths in mm, coefficients in mm^-1.
+"""
+
+from torchsss.physics.budget import (
+    chang_rp,
+    chang_weights,
+    profile_tail_fraction,
+    r_max,
+    splat_alias_error,
+    splat_count,
+    splat_overlap,
+    splat_spacing,
+)
+from torchsss.physics.burley import burley_params_from_dipole, burley_rd
+from torchsss.physics.dipole import (
+    DipoleTerms,
+    dipole_cumulative,
+    dipole_rd,
+    dipole_rd_shah,
+    dipole_spectrum,
+    dipole_terms,
+    total_diffuse_reflectance,
+)
+from torchsss.physics.fresnel import (
+    diffuse_fresnel_reflectance,
+    dipole_boundary_a,
+    fresnel_reflectance,
+    fresnel_transmittance,
+    schlick_reflectance,
+    schlick_transmittance,
+)
+from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table, profile_table_error
+from torchsss.physics.materials import MaterialPreset, preset, preset_names
+
+__all__ = [
+    "DipoleTerms",
+    "MaterialPreset",
+    "ProfileTable",
+    "build_profile_table",
+    "burley_params_from_dipole",
+    "burley_rd",
+    "chang_rp",
+    "chang_weights",
+    "diffuse_fresnel_reflectance",
+    "dipole_boundary_a",
+    "dipole_cumulative",
+    "dipole_rd",
+    "dipole_rd_shah",
+    "dipole_spectrum",
+    "dipole_terms",
+    "fresnel_reflectance",
+    "fresnel_transmittance",
+    "lookup_profile_table",
+    "preset",
+    "preset_names",
+    "profile_table_error",
+    "profile_tail_fraction",
+    "r_max",
+    "schlick_reflectance",
+    "schlick_transmittance",
+    "splat_alias_error",
+    "splat_count",
+    "splat_overlap",
+    "splat_spacing",
+    "total_diffuse_reflectance",
+]
