@@ -53,7 +53,8 @@ def test_integral_matches_closed_form(name):
 def test_cumulative_matches_quadrature(name):
     sa, ss, eta = _material(name)
     for radius in (0.1, 1.0, 5.0):
-        numeric = _radial_integral(lambda r: dipole_rd(r, sa, ss, eta) * (r <= radius), radius, panels=2000)
+        numeric = _radial_integral(lambda r, radius=radius: dipole_rd(r, sa, ss, eta) * (r <= radius), radius,
+                                   panels=2000)
         # the indicator makes the integrand discontinuous: use a fine rule and compare to 1e-4
         assert_close(dipole_cumulative(torch.full((3,), radius, dtype=torch.float64), sa, ss, eta), numeric,
                      rtol=1e-4, atol=0.0)
@@ -99,7 +100,7 @@ def test_against_independent_scalar_formula():
 def test_spectrum_is_hankel_transform():
     sa, ss, eta = _material("skin1")
     for k in (0.0, 0.5, 3.0):
-        numeric = _radial_integral(lambda r: dipole_rd(r, sa, ss, eta) * torch.special.bessel_j0(k * r), 0.5,
+        numeric = _radial_integral(lambda r, k=k: dipole_rd(r, sa, ss, eta) * torch.special.bessel_j0(k * r), 0.5,
                                    panels=4000)
         assert_close(numeric, dipole_spectrum(torch.full((3,), k, dtype=torch.float64), sa, ss, eta),
                      rtol=1e-6, atol=1e-12)

@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchsss._checks import as_float_tensor, check_nonnegative, check_positive, is_tracing
@@ -21,7 +20,7 @@ from torchsss.physics.dipole import dipole_rd, total_diffuse_reflectance
 from torchsss.physics.lut import ProfileTable, build_profile_table
 from torchsss.physics.materials import preset
 
-__all__ = ["BurleyMaterial", "DipoleMaterial", "POSITIVE_FLOOR"]
+__all__ = ["POSITIVE_FLOOR", "BurleyMaterial", "DipoleMaterial"]
 
 #: Smallest value a softplus-parameterised coefficient is initialised to. A coefficient given as exactly 0
 #: (e.g. spectralon's absorption) becomes 1e-12 mm^-1 (an extinction length of 1e9 km), indistinguishable in
@@ -32,16 +31,21 @@ Number = float | int
 Coeff = Tensor | Number | Sequence[Number]
 
 
+def _softplus(x: Tensor) -> Tensor:
+    """log(1 + e^x) without torch's linear cut-over above 20 (which is off by e^-20 ~ 2e-9 relative)."""
+    return torch.logaddexp(x, torch.zeros_like(x))
+
+
 def _inverse_softplus(x: Tensor) -> Tensor:
     x64 = x.to(torch.float64).clamp_min(POSITIVE_FLOOR)
     return (x64 + torch.log(-torch.expm1(-x64))).to(x.dtype)
 
 
 def _coeff(value: Coeff, name: str, dtype: torch.dtype | None, device: torch.device | str | None) -> Tensor:
-    t = as_float_tensor(value, name)
-    t = t.detach().to(dtype=dtype or (t.dtype if isinstance(value, Tensor) else torch.get_default_dtype()),
-                      device=device)
-    return t.clone()
+    # Python numbers go straight to the requested dtype (never through float32 first).
+    like = None if isinstance(value, Tensor) or dtype is None else torch.empty(0, dtype=dtype)
+    t = as_float_tensor(value, name, like=like)
+    return t.detach().to(dtype=dtype or t.dtype, device=device).clone()
 
 
 class DipoleMaterial(nn.Module):
@@ -113,8 +117,10 @@ class DipoleMaterial(nn.Module):
             sigma_s: scattering coefficient (mm^-1), >= 0.
             g: phase-function anisotropy in (-1, 1).
             eta: relative index of refraction.
+            **kwargs: ``dtype`` and ``device``, as in the constructor.
         """
-        ss = as_float_tensor(sigma_s, "sigma_s")
+        like = torch.empty(0, dtype=kwargs.get("dtype") or torch.get_default_dtype())
+        ss = as_float_tensor(sigma_s, "sigma_s", like=like)
         gg = as_float_tensor(g, "g", like=ss)
         check_nonnegative(ss, "sigma_s")
         if bool(((gg <= -1) | (gg >= 1) | torch.isnan(gg)).any()):
@@ -125,17 +131,17 @@ class DipoleMaterial(nn.Module):
     @property
     def sigma_a(self) -> Tensor:
         """Absorption coefficient (mm^-1), :math:`(C,)`."""
-        return F.softplus(self.raw_sigma_a)
+        return _softplus(self.raw_sigma_a)
 
     @property
     def sigma_s_prime(self) -> Tensor:
         """Reduced scattering coefficient (mm^-1), :math:`(C,)`."""
-        return F.softplus(self.raw_sigma_s_prime)
+        return _softplus(self.raw_sigma_s_prime)
 
     @property
     def eta(self) -> Tensor:
         """Relative index of refraction."""
-        return F.softplus(self.raw_eta)
+        return _softplus(self.raw_eta)
 
     @property
     def channels(self) -> int:
@@ -164,6 +170,7 @@ class DipoleMaterial(nn.Module):
         return build_profile_table(self, self.r_max(eps).to(self.raw_sigma_a.dtype).reshape(-1), size, warp)
 
     def extra_repr(self) -> str:
+        """The coefficients in physical units, for ``repr``."""
         if is_tracing():
             return ""
         f = lambda t: [round(v, 6) for v in t.detach().reshape(-1).tolist()]  # noqa: E731
@@ -203,7 +210,8 @@ class BurleyMaterial(nn.Module):
     @classmethod
     def from_dipole(cls, sigma_a: Coeff, sigma_s_prime: Coeff, eta: Coeff = 1.3, **kwargs) -> BurleyMaterial:
         """Match a dipole material (same total reflectance; see :func:`burley_params_from_dipole`)."""
-        a, s = burley_params_from_dipole(as_float_tensor(sigma_a, "sigma_a"), sigma_s_prime, eta)
+        like = torch.empty(0, dtype=kwargs.get("dtype") or torch.get_default_dtype())
+        a, s = burley_params_from_dipole(as_float_tensor(sigma_a, "sigma_a", like=like), sigma_s_prime, eta)
         eps = 1e-7
         return cls(a.clamp(eps, 1 - eps), s, **kwargs)
 
@@ -221,7 +229,7 @@ class BurleyMaterial(nn.Module):
     @property
     def s(self) -> Tensor:
         """Shape parameter (mm^-1), :math:`(C,)`."""
-        return F.softplus(self.raw_s)
+        return _softplus(self.raw_s)
 
     def forward(
         self, r: Tensor, distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None

@@ -28,4 +28,5 @@ class DipoleProfile(nn.Module):
     """
 
     def forward(self, r: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor) -> Tensor:
+        """Evaluate :math:`R_d` (mm^-2) at distances ``r`` (mm); see the class docstring for shapes."""
         return dipole_rd(r, sigma_a, sigma_s_prime, eta)

@@ -68,8 +68,9 @@ def reference_radiosity(
         src_distance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` distance multiplier :math:`M_d` of
             each source (Shah eq. 7.4).
         src_irradiance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` irradiance modulation :math:`M_i`.
-        src_ids, dst_ids: optional :math:`(B, N)` and :math:`(B, M)` integer object ids; pairs with different ids
-            do not interact (Shah 6.4.3). Give both or neither.
+        src_ids: optional :math:`(B, N)` integer object ids of the sources; a pair whose ids differ does not
+            interact (Shah 6.4.3). Give both ``src_ids`` and ``dst_ids`` or neither.
+        dst_ids: optional :math:`(B, M)` integer object ids of the receivers.
         max_pairs: pair budget per chunk (>= 1).
 
     Returns:

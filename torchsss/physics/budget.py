@@ -95,7 +95,9 @@ def r_max(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01) -> Tensor:
     relative precision of about 1e-12.
 
     Args:
-        sigma_a, sigma_s_prime, eta: material (mm^-1), e.g. ``(C,)`` each.
+        sigma_a: absorption coefficient (mm^-1), e.g. ``(C,)``.
+        sigma_s_prime: reduced scattering coefficient (mm^-1), broadcastable with ``sigma_a``.
+        eta: relative index of refraction.
         eps: allowed fraction of the total diffuse reflectance lost by truncation, in (0, 1).
 
     Returns:
@@ -190,7 +192,9 @@ def splat_overlap(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01, rule: str 
     """Splat overlap :math:`n_o` (Shah eq. 6.17): splats that overlap along one splat diameter.
 
     Args:
-        sigma_a, sigma_s_prime, eta: material (mm^-1).
+        sigma_a: absorption coefficient (mm^-1), e.g. ``(C,)``.
+        sigma_s_prime: reduced scattering coefficient (mm^-1), broadcastable with ``sigma_a``.
+        eta: relative index of refraction.
         eps: threshold, as in :func:`r_max`.
         rule: ``"spacing"`` (default): :math:`n_o = 2 r_{max} / h` with :math:`h` from :func:`splat_spacing`,
             so that eq. 6.18 gives a lattice of spacing :math:`h`. ``"literal"``: eq. 6.17 as printed,
@@ -244,7 +248,9 @@ def chang_rp(sigma_a, sigma_s_prime, eta=1.3, c: float = 0.01, grid: int = 4096)
     three channels, the largest: call ``chang_rp(...).amax(-1)`` for that.
 
     Args:
-        sigma_a, sigma_s_prime, eta: material (mm^-1).
+        sigma_a: absorption coefficient (mm^-1), e.g. ``(C,)``.
+        sigma_s_prime: reduced scattering coefficient (mm^-1), broadcastable with ``sigma_a``.
+        eta: relative index of refraction.
         c: importance lower bound in mm^-1 (> 0).
         grid: points of the log-spaced bracketing grid before bisection.
 

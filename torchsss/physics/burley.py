@@ -17,7 +17,7 @@ from torch import Tensor
 from torchsss._checks import as_float_tensor, check_broadcastable, check_nonnegative, check_positive, compute_dtype
 from torchsss.physics.dipole import total_diffuse_reflectance
 
-__all__ = ["burley_params_from_dipole", "burley_rd", "BURLEY_R_FLOOR"]
+__all__ = ["BURLEY_R_FLOOR", "burley_params_from_dipole", "burley_rd"]
 
 #: The profile is singular (1/r) at r = 0; distances are clamped to ``BURLEY_R_FLOOR / s`` so that a
 #: receiver that coincides with a source gets a large finite value instead of inf (the integral is unaffected).

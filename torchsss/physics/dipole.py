@@ -36,11 +36,11 @@ from torchsss.physics.fresnel import dipole_boundary_a
 
 __all__ = [
     "DipoleTerms",
+    "dipole_cumulative",
     "dipole_rd",
     "dipole_rd_shah",
-    "dipole_terms",
-    "dipole_cumulative",
     "dipole_spectrum",
+    "dipole_terms",
     "total_diffuse_reflectance",
 ]
 
@@ -73,8 +73,10 @@ class DipoleTerms:
 
     @property
     def sigma_tr(self) -> Tensor:
-        """Effective extinction :math:`\\sigma_{tr} = \\sqrt{3\\sigma_a\\sigma_t'}` (mm^-1; not safe to differentiate
-        at :math:`\\sigma_a = 0`)."""
+        """Effective extinction :math:`\\sigma_{tr} = \\sqrt{3\\sigma_a\\sigma_t'}` in mm^-1.
+
+        Not safe to differentiate at :math:`\\sigma_a = 0`; :func:`dipole_rd` does not use it.
+        """
         return torch.sqrt(self.sigma_tr_sq)
 
 
@@ -117,6 +119,9 @@ def _h_over_d3(u_scale: Tensor, d: Tensor) -> Tensor:
     ``u_scale`` is :math:`\\sigma_{tr}^2`.
     """
     small = u_scale < _SERIES_BELOW
+    if not is_tracing() and not bool(small.any()):  # eager fast path: every channel absorbs
+        sigma_tr = torch.sqrt(u_scale)
+        return (sigma_tr + 1.0 / d) * torch.exp(-sigma_tr * d) / (d * d)
     # Exact branch, evaluated at a safe value where the series branch is selected (double-where trick).
     s_safe = torch.where(small, torch.ones_like(u_scale), u_scale)
     sigma_tr = torch.sqrt(s_safe)
@@ -235,7 +240,8 @@ def total_diffuse_reflectance(
     genuinely :math:`-\\infty` at :math:`\\sigma_a = 0` (a square-root cusp); this function does not hide that.
 
     Args:
-        sigma_a, sigma_s_prime: coefficients in mm^-1 (any broadcastable shapes).
+        sigma_a: absorption coefficient in mm^-1 (any shape broadcastable with the others).
+        sigma_s_prime: reduced scattering coefficient in mm^-1.
         eta: relative index of refraction.
 
     Returns:
@@ -291,11 +297,16 @@ def dipole_spectrum(
 ) -> Tensor:
     """Radial 2-D Fourier transform :math:`\\hat R_d(k) = \\int R_d(|x|) e^{-i k\\cdot x} dx` (k in rad/mm).
 
-    Each dipole term is a Poisson-like kernel with the closed-form Hankel transform
-    :math:`\\int_0^\\infty z(1+\\sigma_{tr}d)e^{-\\sigma_{tr}d}/d^3\\,J_0(kr)\\,r\\,dr = e^{-z\\sqrt{k^2+\\sigma_{tr}^2}}`, so
+    Each dipole term is a Poisson-like kernel with a closed-form Hankel transform:
 
     .. math::
-        \\hat R_d(k) = \\frac{\\alpha'}{2}\\left(e^{-z_r q} + e^{-z_v q}\\right), \\quad q = \\sqrt{k^2 + \\sigma_{tr}^2}.
+        \\int_0^\\infty z(1+\\sigma_{tr}d)e^{-\\sigma_{tr}d}/d^3\\,J_0(kr)\\,r\\,dr = e^{-z q},
+        \\quad q = \\sqrt{k^2+\\sigma_{tr}^2},
+
+    so that
+
+    .. math::
+        \\hat R_d(k) = \\frac{\\alpha'}{2}\\left(e^{-z_r q} + e^{-z_v q}\\right).
 
     :math:`\\hat R_d(0)` is :func:`total_diffuse_reflectance`. Used for the sampling criterion of splats.
     """
