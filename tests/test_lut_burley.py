@@ -139,3 +139,25 @@ def test_burley_matches_dipole_energy_and_module():
         BurleyMaterial([1.2], [1.0])
     with pytest.raises(ValueError, match="s"):
         BurleyMaterial([0.5], [0.0])
+
+
+def test_shared_range_row_path_matches_per_channel_path():
+    sa, ss, eta = _mat64("skin1")
+    rm = r_max(sa, ss, eta, 0.01)
+
+    def prof(r):
+        return dipole_rd(r, sa, ss, eta)
+
+    shared = build_profile_table(prof, rm, 512, "sqrt", shared_range=True)
+    assert torch.all(shared.r_max == rm.max())
+    r1 = torch.rand(5000, 1, dtype=torch.float64) * rm.max() * 1.1  # includes r beyond the range
+    fast = lookup_profile_table(r1, shared)  # row-gather path
+    general = lookup_profile_table(r1.expand(-1, 3).contiguous(), shared)  # per-channel path, same table
+    assert_close(fast, general, rtol=1e-15, atol=0)
+    assert torch.all(fast[r1[:, 0] > rm.max()] == 0)
+    err = profile_table_error(shared, prof)
+    assert torch.all(err < 1e-3)
+    # gradients flow through the row path
+    vals = shared.values.detach().requires_grad_(True)
+    lookup_profile_table(r1[:50], ProfileTable(vals, shared.r_max, "sqrt", True)).sum().backward()
+    assert vals.grad.abs().sum() > 0

@@ -169,9 +169,15 @@ class DipoleMaterial(nn.Module):
         """Shah's splat radius per channel (mm), see :func:`torchsss.physics.r_max` (no gradient)."""
         return _r_max(self.sigma_a.detach(), self.sigma_s_prime.detach(), self.eta.detach(), eps)
 
-    def table(self, size: int = 1024, eps: float = 0.01, warp: str = "sqrt") -> ProfileTable:
-        """A lookup table of this profile over :math:`[0, r_{max}(\\epsilon)]` (values keep gradients)."""
-        return build_profile_table(self, self.r_max(eps).to(self.raw_sigma_a.dtype).reshape(-1), size, warp)
+    def table(
+        self, size: int = 1024, eps: float = 0.01, warp: str = "sqrt", shared_range: bool = True
+    ) -> ProfileTable:
+        """A lookup table of this profile over :math:`[0, r_{max}(\\epsilon)]` (values keep gradients).
+
+        See :func:`torchsss.physics.build_profile_table`; a shared range (default) is the fast layout.
+        """
+        rm = self.r_max(eps).to(self.raw_sigma_a.dtype).reshape(-1)
+        return build_profile_table(self, rm, size, warp, shared_range)
 
     def extra_repr(self) -> str:
         """The coefficients in physical units, for ``repr``."""

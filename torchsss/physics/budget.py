@@ -45,6 +45,12 @@ def _material64(sigma_a, sigma_s_prime, eta) -> tuple[Tensor, Tensor, Tensor, to
     return conv[0], conv[1], conv[2], out_dtype
 
 
+def _material_like(sigma_a, sigma_s_prime, eta, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Python numbers take ``like``'s dtype (so a float64 radius is never evaluated with float32 material terms)."""
+    return (as_float_tensor(sigma_a, "sigma_a", like=like), as_float_tensor(sigma_s_prime, "sigma_s_prime", like=like),
+            as_float_tensor(eta, "eta", like=like))
+
+
 def _check_eps(eps: float, name: str = "eps") -> float:
     if isinstance(eps, bool) or not isinstance(eps, (int, float)):
         raise TypeError(f"{name}: expected a float in (0, 1), got {type(eps).__name__}")
@@ -76,8 +82,8 @@ def profile_tail_fraction(radius, sigma_a, sigma_s_prime, eta=1.3) -> Tensor:
         >>> round(profile_tail_fraction(0.0, 0.01, 1.0).item(), 6)
         1.0
     """
-    terms = dipole_terms(sigma_a, sigma_s_prime, eta)
-    r = as_float_tensor(radius, "radius", like=terms.z_r)
+    r = as_float_tensor(radius, "radius")
+    terms = dipole_terms(*_material_like(sigma_a, sigma_s_prime, eta, r))
     sig = terms.sigma_tr
     num = 0.0
     den = 0.0
@@ -139,9 +145,10 @@ def splat_alias_error(spacing, sigma_a, sigma_s_prime, eta=1.3, shells: int = 4)
     :math:`|m|_\\infty \\le` ``shells`` (the rest is negligible: :math:`\\hat R_d` decays like
     :math:`e^{-z_r k}`). Shapes broadcast as :func:`dipole_rd`.
     """
-    terms = dipole_terms(sigma_a, sigma_s_prime, eta)
-    h = as_float_tensor(spacing, "spacing", like=terms.z_r)
+    h = as_float_tensor(spacing, "spacing")
     check_positive(h, "spacing")
+    sigma_a, sigma_s_prime, eta = _material_like(sigma_a, sigma_s_prime, eta, h)
+    terms = dipole_terms(sigma_a, sigma_s_prime, eta)
     rng = torch.arange(-shells, shells + 1, dtype=torch.float64)
     mx, my = torch.meshgrid(rng, rng, indexing="ij")
     norms = torch.sqrt(mx * mx + my * my).flatten()
