@@ -68,8 +68,8 @@ QUICK = {
 
 
 def _coefficients(name: str, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, float]:
-    p = preset(name)
-    return (torch.tensor(p.sigma_a, dtype=dtype), torch.tensor(p.sigma_s_prime, dtype=dtype), p.eta)
+    sa, ss, _ = preset(name).tensors(dtype)
+    return sa, ss, preset(name).eta
 
 
 def bench_lut(n_distances: int, timing: dict, log=print) -> list[dict]:

@@ -21,8 +21,8 @@ from torchsss.physics import (
 
 
 def _mat(name):
-    p = preset(name)
-    return torch.tensor(p.sigma_a, dtype=torch.float64), torch.tensor(p.sigma_s_prime, dtype=torch.float64), p.eta
+    sa, ss, _ = preset(name).tensors()
+    return sa, ss, preset(name).eta
 
 
 @pytest.mark.parametrize("name", preset_names())

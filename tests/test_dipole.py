@@ -33,8 +33,8 @@ def _radial_integral(f, scale: float, panels: int = 400, order: int = 16) -> tor
 
 
 def _material(name):
-    p = preset(name)
-    return (torch.tensor(p.sigma_a, dtype=torch.float64), torch.tensor(p.sigma_s_prime, dtype=torch.float64), p.eta)
+    sa, ss, _ = preset(name).tensors()
+    return sa, ss, preset(name).eta
 
 
 @pytest.mark.parametrize("name", preset_names())

@@ -21,8 +21,8 @@ from torchsss.testing import assert_close
 
 
 def _mat64(name):
-    p = preset(name)
-    return torch.tensor(p.sigma_a, dtype=torch.float64), torch.tensor(p.sigma_s_prime, dtype=torch.float64), p.eta
+    sa, ss, _ = preset(name).tensors()
+    return sa, ss, preset(name).eta
 
 
 def test_lookup_against_loop_interpolation():

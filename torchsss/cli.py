@@ -14,6 +14,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -34,8 +35,6 @@ __all__ = ["main", "profiles"]
 
 def _radial_quadrature(f, z_r: float, panels: int = 256, order: int = 16) -> torch.Tensor:
     """int_0^inf f(r) 2 pi r dr by composite Gauss-Legendre after r = z_r tan(theta) (float64)."""
-    import numpy as np
-
     x, w = np.polynomial.legendre.leggauss(order)
     edges = np.linspace(0.0, math.pi / 2, panels + 1)
     a, b = edges[:-1, None], edges[1:, None]
@@ -64,8 +63,7 @@ def profiles(out: Path, eps: float = 0.01, width: int = 512, r_extent: float = 2
     t0 = time.perf_counter()
     for row, name in enumerate(tqdm(names, desc="presets", unit="preset", disable=None)):
         p = preset(name)
-        sa = torch.tensor(p.sigma_a, dtype=torch.float64)
-        ss = torch.tensor(p.sigma_s_prime, dtype=torch.float64)
+        sa, ss, _ = p.tensors(torch.float64)
         rd = dipole_rd(r, sa, ss, p.eta)  # (width, 3)
         curves[name] = rd
         image[:, row * band:(row + 1) * band, :] = rd.T.unsqueeze(1)

@@ -45,9 +45,14 @@ def _inverse_softplus(x: Tensor) -> Tensor:
     return (x64 + torch.log(-torch.expm1(-x64))).to(x.dtype)
 
 
+def _like(dtype: torch.dtype | None) -> Tensor:
+    """An empty tensor whose dtype Python numbers should take (the default dtype when none is asked for)."""
+    return torch.empty(0, dtype=dtype or torch.get_default_dtype())
+
+
 def _coeff(value: Coeff, name: str, dtype: torch.dtype | None, device: torch.device | str | None) -> Tensor:
     # Python numbers go straight to the requested dtype (never through float32 first).
-    like = None if isinstance(value, Tensor) or dtype is None else torch.empty(0, dtype=dtype)
+    like = None if isinstance(value, Tensor) or dtype is None else _like(dtype)
     t = as_float_tensor(value, name, like=like)
     return t.detach().to(dtype=dtype or t.dtype, device=device).clone()
 
@@ -123,8 +128,7 @@ class DipoleMaterial(nn.Module):
             eta: relative index of refraction.
             **kwargs: ``dtype`` and ``device``, as in the constructor.
         """
-        like = torch.empty(0, dtype=kwargs.get("dtype") or torch.get_default_dtype())
-        ss = as_float_tensor(sigma_s, "sigma_s", like=like)
+        ss = as_float_tensor(sigma_s, "sigma_s", like=_like(kwargs.get("dtype")))
         gg = as_float_tensor(g, "g", like=ss)
         check_nonnegative(ss, "sigma_s")
         if bool(((gg <= -1) | (gg >= 1) | torch.isnan(gg)).any()):
@@ -220,8 +224,8 @@ class BurleyMaterial(nn.Module):
     @classmethod
     def from_dipole(cls, sigma_a: Coeff, sigma_s_prime: Coeff, eta: Coeff = 1.3, **kwargs) -> BurleyMaterial:
         """Match a dipole material (same total reflectance; see :func:`burley_params_from_dipole`)."""
-        like = torch.empty(0, dtype=kwargs.get("dtype") or torch.get_default_dtype())
-        a, s = burley_params_from_dipole(as_float_tensor(sigma_a, "sigma_a", like=like), sigma_s_prime, eta)
+        sa = as_float_tensor(sigma_a, "sigma_a", like=_like(kwargs.get("dtype")))
+        a, s = burley_params_from_dipole(sa, sigma_s_prime, eta)
         eps = 1e-7
         return cls(a.clamp(eps, 1 - eps), s, **kwargs)
 

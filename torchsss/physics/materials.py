@@ -12,6 +12,9 @@ from dataclasses import dataclass
 from functools import cache
 from importlib import resources
 
+import torch
+from torch import Tensor
+
 __all__ = ["MaterialPreset", "preset", "preset_names"]
 
 
@@ -23,6 +26,20 @@ class MaterialPreset:
     sigma_a: tuple[float, float, float]
     sigma_s_prime: tuple[float, float, float]
     eta: float
+
+    def tensors(
+        self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``(sigma_a, sigma_s_prime, eta)`` as tensors of shape ``(3,)``, ``(3,)``, ``()`` (mm^-1).
+
+        Examples:
+            >>> sa, ss, eta = preset("marble").tensors()
+            >>> sa.dtype, tuple(ss.shape), eta.item()
+            (torch.float64, (3,), 1.3)
+        """
+        return (torch.tensor(self.sigma_a, dtype=dtype, device=device),
+                torch.tensor(self.sigma_s_prime, dtype=dtype, device=device),
+                torch.tensor(self.eta, dtype=dtype, device=device))
 
 
 @cache
