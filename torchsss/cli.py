@@ -2,11 +2,13 @@
 
 Commands:
     profiles   evaluate the dipole profile of every Jensen 2001 preset and write EXR, PNG and JSON summaries.
+    render     render a scene file (or the built-in default scene) with a method; write EXR, PNG and JSON.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -29,8 +31,10 @@ from torchsss.physics import (
     splat_spacing,
     total_diffuse_reflectance,
 )
+from torchsss.pipelines import METHODS, render_scene
+from torchsss.scene import default_scene_path, load_scene
 
-__all__ = ["main", "profiles"]
+__all__ = ["main", "profiles", "render"]
 
 
 def _radial_quadrature(f, z_r: float, panels: int = 256, order: int = 16) -> torch.Tensor:
@@ -122,6 +126,47 @@ def _plot(curves: dict, r: torch.Tensor, path: Path) -> bool:
     return True
 
 
+def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
+           resolution: tuple[int, int] | None = None) -> dict:
+    """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
+
+    ``out`` is the EXR path; the PNG (tone-mapped) and the JSON (stats) go beside it with the same stem.
+    """
+    path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
+    scene = load_scene(path)
+    if resolution is not None:
+        scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, height=resolution[0],
+                                                                      width=resolution[1]))
+    t0 = time.perf_counter()
+    result = render_scene(scene, method, dtype=dtype, **options)
+    seconds = time.perf_counter() - t0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    image = result.radiance[0].float()
+    write_exr(out, image)
+    png = out.with_suffix(".png")
+    write_png(png, tonemap(image))
+    summary = {"scene": str(path), "method": method, "mesh": scene.mesh, "size_mm": scene.size_mm,
+               "material": dataclasses.asdict(scene.material), "width": scene.camera.width,
+               "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "seconds": seconds,
+               "options": {k: v for k, v in options.items() if k != "progress"},
+               "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
+               "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
+                                         / max(1, int(result.mask.sum()))],
+               "stats": result.stats, "exr": str(out), "png": str(png)}
+    out.with_suffix(".json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 256x256, got {text!r}") from err
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"expected positive sizes, got {text!r}")
+    return h, w
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m torchsss`` and the ``torchsss`` console script."""
     parser = argparse.ArgumentParser(prog="torchsss", description=__doc__.splitlines()[0])
@@ -130,7 +175,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_prof.add_argument("--out", type=Path, default=Path("out"), help="output directory (default: out)")
     p_prof.add_argument("--eps", type=float, default=0.01, help="truncation/sampling tolerance (default 0.01)")
     p_prof.add_argument("--no-plot", action="store_true", help="skip matplotlib; write a tone-mapped preview")
+    p_ren = sub.add_parser("render", help="render a scene file with a method -> EXR, PNG, JSON")
+    p_ren.add_argument("scene", help="scene JSON file, or 'default' for the built-in scene (spot, back-lit)")
+    p_ren.add_argument("--method", default="reference", choices=sorted(METHODS), help="rendering method")
+    p_ren.add_argument("--out", type=Path, default=Path("out/render.exr"), help="output EXR (PNG, JSON beside)")
+    p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
+    p_ren.add_argument("--float64", action="store_true", help="integrate in float64")
+    p_ren.add_argument("--spacing", type=float, default=None, help="reference: surface sample spacing in mm")
+    p_ren.add_argument("--eps", type=float, default=0.01, help="reference: tolerance of the default spacing")
+    p_ren.add_argument("--shadows", default="raytrace", choices=["raytrace", "shadowmap", "none"],
+                       help="reference: visibility of the lights")
+    p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
     args = parser.parse_args(argv)
+    if args.command == "render":
+        if not 0 < args.eps < 1:
+            parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")
+        options = {"eps": args.eps, "shadows": args.shadows, "progress": not args.no_progress}
+        if args.spacing is not None:
+            options["spacing_mm"] = args.spacing
+        try:
+            summary = render(args.scene, args.method, args.out, options=options,
+                             dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution)
+        except (ValueError, TypeError) as err:
+            parser.exit(2, f"torchsss render: error: {err}\n")
+        st = summary["stats"]
+        print(f"wrote {summary['exr']}, {summary['png']}, {args.out.with_suffix('.json')}")
+        print(f"{summary['method']}: {summary['width']}x{summary['height']}, {summary['covered_pixels']} covered "
+              f"pixels, {st.get('samples', '-')} surface samples ({st.get('spacing_mm', float('nan')):.3f} mm), "
+              f"{summary['seconds']:.1f} s")
     if args.command == "profiles":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")

@@ -1,0 +1,83 @@
+"""Geometry: meshes in millimetres, texture atlas, rasterizer, cameras, lights, shadows, G-buffers.
+
+No nn.Modules here (DESIGN.md §3): these are the build-once inputs of every method - a mesh at its real size,
+an atlas whose texels know their surface point, image-space G-buffers from the camera's and the light's view,
+and irradiance with Fresnel and shadows. All lengths are millimetres.
+"""
+
+from torchsss.geometry.atlas import Atlas, build_atlas, parameterize
+from torchsss.geometry.camera import Camera, look_at, orthographic, perspective, pixel_centers_ndc, transform_points
+from torchsss.geometry.gbuffer import GBuffer, LightView, camera_gbuffer, light_view
+from torchsss.geometry.lights import (
+    DirectionalLight,
+    Light,
+    PointLight,
+    SpotLight,
+    incident_light,
+    light_from_dict,
+    surface_irradiance,
+)
+from torchsss.geometry.mesh import (
+    Mesh,
+    MeshWarning,
+    builtin_mesh_names,
+    builtin_mesh_path,
+    decimate,
+    load_mesh,
+    mesh_from_arrays,
+    normalize_to_size,
+)
+from torchsss.geometry.procedural import plane, slab, sphere, torus
+from torchsss.geometry.raster import Raster, interpolate, rasterize, rasterize_uv
+from torchsss.geometry.sampling import SurfaceSamples, subdivision_barycentrics, surface_samples
+from torchsss.geometry.shadow import ShadowMap, bounding_sphere, build_shadow_map, light_camera, shadow_visibility
+from torchsss.geometry.visibility import point_inside, ray_visibility
+
+__all__ = [
+    "Atlas",
+    "Camera",
+    "DirectionalLight",
+    "GBuffer",
+    "Light",
+    "LightView",
+    "Mesh",
+    "MeshWarning",
+    "PointLight",
+    "Raster",
+    "ShadowMap",
+    "SpotLight",
+    "SurfaceSamples",
+    "bounding_sphere",
+    "build_atlas",
+    "build_shadow_map",
+    "builtin_mesh_names",
+    "builtin_mesh_path",
+    "camera_gbuffer",
+    "decimate",
+    "incident_light",
+    "interpolate",
+    "light_camera",
+    "light_from_dict",
+    "light_view",
+    "load_mesh",
+    "look_at",
+    "mesh_from_arrays",
+    "normalize_to_size",
+    "orthographic",
+    "parameterize",
+    "perspective",
+    "pixel_centers_ndc",
+    "plane",
+    "point_inside",
+    "rasterize",
+    "rasterize_uv",
+    "ray_visibility",
+    "shadow_visibility",
+    "slab",
+    "sphere",
+    "subdivision_barycentrics",
+    "surface_irradiance",
+    "surface_samples",
+    "torus",
+    "transform_points",
+]

@@ -1,0 +1,194 @@
+"""Image-space G-buffers: what the camera sees and what the light sees.
+
+The camera G-buffer gives the receivers :math:`x_o` of every method (positions, shading normals, the unit
+direction towards the eye). The light-view G-buffer gives the sources of the splatting and caustics methods:
+the first surface the light sees at every light-view pixel, its transmitted irradiance and the surface area
+the pixel covers,
+
+.. math::
+
+    dA = \\frac{\\text{pixel footprint}}{\\cos\\theta}, \\qquad
+    \\text{footprint} = \\Omega_{pix}\\, d^2 \\text{ (perspective)}, \\quad s^2 \\text{ (orthographic)},
+
+with :math:`\\Omega_{pix} = s^2 \\cos^3\\alpha` the solid angle of a pixel of size s on the unit image plane
+whose ray makes the angle :math:`\\alpha` with the axis, d the distance to the light and :math:`\\theta` the
+angle between the normal and the direction to the light. At grazing incidence :math:`dA` grows without bound;
+it is clamped through :math:`\\cos\\theta \\ge` ``min_cos``. The product that the methods actually need, the
+flux :math:`E\\,dA = E_\\perp\\,\\text{footprint}\\,F_t`, is computed without the division and stays exact and
+bounded at every angle (it is 0 where :math:`\\cos\\theta \\le 0`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchsss.geometry.camera import Camera, transform_points
+from torchsss.geometry.lights import Light, incident_light
+from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.raster import interpolate, rasterize
+from torchsss.geometry.shadow import bounding_sphere, light_camera
+from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+
+__all__ = ["GBuffer", "LightView", "camera_gbuffer", "light_view"]
+
+
+class GBuffer(NamedTuple):
+    """Camera-view surface data; every tensor :math:`(B, C, H, W)`, zeros on the background.
+
+    Attributes:
+        position: :math:`(B, 3, H, W)` mm.
+        normal: :math:`(B, 3, H, W)` unit shading normals (interpolated vertex normals).
+        view_dir: :math:`(B, 3, H, W)` unit direction from the surface towards the eye.
+        face_id: :math:`(B, 1, H, W)` int64, -1 on background.
+        mask: :math:`(B, 1, H, W)` bool.
+    """
+
+    position: Tensor
+    normal: Tensor
+    view_dir: Tensor
+    face_id: Tensor
+    mask: Tensor
+
+
+def _normalize(v: Tensor, dim: int = 1) -> Tensor:
+    return F.normalize(v, dim=dim, eps=1e-12)
+
+
+def _check_in_front(mesh: Mesh, cam: Camera) -> None:
+    view = cam.view_matrix(dtype=torch.float64, device=mesh.vertices.device)
+    depth = -transform_points(mesh.vertices.double(), view)[..., 2]
+    if float(depth.min()) < cam.near:
+        raise ValueError(
+            f"camera: expected the mesh entirely beyond the near plane ({cam.near} mm), got a vertex at view depth "
+            f"{float(depth.min()):.3f} mm (the camera is inside or too close to the mesh); move the eye back or "
+            "lower 'near'"
+        )
+
+
+def camera_gbuffer(mesh: Mesh, camera: Camera) -> GBuffer:
+    """Rasterize ``mesh`` from ``camera`` and interpolate positions and normals.
+
+    Raises:
+        ValueError: a vertex lies in front of the near plane (camera inside or too close to the mesh).
+
+    Examples:
+        >>> from torchsss.geometry.procedural import sphere
+        >>> g = camera_gbuffer(sphere(10.0, 3), Camera(eye=(0, 0, 60), target=(0, 0, 0), width=32, height=32))
+        >>> tuple(g.position.shape), round(g.position[0, 2, 16, 16].item(), 1)
+        ((1, 3, 32, 32), 10.0)
+    """
+    _check_in_front(mesh, camera)
+    dtype, device = mesh.vertices.dtype, mesh.vertices.device
+    clip = transform_points(mesh.vertices, camera.view_proj(dtype=dtype, device=device))
+    raster = rasterize(clip, mesh.faces, camera.resolution)
+    position = interpolate(mesh.vertices, raster, mesh.faces)
+    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * raster.mask
+    eye = torch.tensor(camera.eye, dtype=dtype, device=device).view(1, 3, 1, 1)
+    if camera.projection == "orthographic":
+        fwd = torch.tensor(camera.target, dtype=dtype, device=device).view(1, 3, 1, 1) - eye
+        view_dir = (-_normalize(fwd)).expand_as(position)
+    else:
+        view_dir = _normalize(eye - position)
+    return GBuffer(position, normal, view_dir * raster.mask, raster.face_id, raster.mask)
+
+
+class LightView(NamedTuple):
+    """The first surface seen from a light; every tensor :math:`(1, C, H, W)`, zeros where nothing is seen.
+
+    Attributes:
+        position: :math:`(1, 3, H, W)` mm.
+        normal: :math:`(1, 3, H, W)` unit shading normals.
+        irradiance: :math:`(1, 3, H, W)` transmitted irradiance :math:`E = E_\\perp \\cos\\theta F_t`.
+        area: :math:`(1, 1, H, W)` surface area dA in mm^2 the pixel covers (clamped at grazing angles).
+        flux: :math:`(1, 3, H, W)` :math:`E\\,dA`, exact at every angle.
+        mask: :math:`(1, 1, H, W)` bool, pixel sees the object (and receives light).
+        face_id: :math:`(1, 1, H, W)` int64, -1 where nothing is seen.
+        camera: the light camera (:func:`~torchsss.geometry.shadow.light_camera`).
+    """
+
+    position: Tensor
+    normal: Tensor
+    irradiance: Tensor
+    area: Tensor
+    flux: Tensor
+    mask: Tensor
+    face_id: Tensor
+    camera: Camera
+
+
+def light_view(
+    mesh: Mesh,
+    light: Light,
+    resolution: int = 256,
+    eta: Tensor | float = 1.3,
+    *,
+    fresnel: str = "exact",
+    min_cos: float = 1e-2,
+) -> LightView:
+    """Light-view G-buffer of ``mesh`` seen from ``light`` (the sources of image-space methods).
+
+    Every pixel that sees the object is lit by construction (it is the first surface along the light's ray),
+    so no shadow test is needed here.
+
+    Args:
+        mesh: the object (mm).
+        light: a point, spot or directional light.
+        resolution: light-view width and height in pixels.
+        eta: relative index of refraction for the Fresnel transmittance.
+        fresnel: ``"exact"``, ``"schlick"`` or ``"none"``.
+        min_cos: lower bound of :math:`\\cos\\theta` in :math:`dA` (0 < min_cos <= 1); ``flux`` is not clamped.
+
+    Examples:
+        >>> from torchsss.geometry.lights import DirectionalLight
+        >>> from torchsss.geometry.procedural import plane
+        >>> lv = light_view(plane(10.0, 10.0, 2), DirectionalLight((0, 0, -1), 1.0), 64, fresnel="none")
+        >>> abs((lv.area * lv.mask).sum().item() - 100.0) < 2.0  # the plane's 100 mm^2, up to pixel coverage
+        True
+    """
+    if not 0.0 < min_cos <= 1.0:
+        raise ValueError(f"min_cos: expected a value in (0, 1], got {min_cos!r}")
+    if fresnel not in ("exact", "schlick", "none"):
+        raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
+    centre, radius = bounding_sphere(mesh)
+    cam = light_camera(light, centre, radius, resolution)
+    dtype, device = mesh.vertices.dtype, mesh.vertices.device
+    clip = transform_points(mesh.vertices, cam.view_proj(dtype=dtype, device=device))
+    raster = rasterize(clip, mesh.faces, (resolution, resolution))
+    mask = raster.mask
+    position = interpolate(mesh.vertices, raster, mesh.faces)
+    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * mask
+    pts = position.flatten(2).transpose(1, 2)
+    to_light, dist, e_perp = incident_light(light, pts)
+    cos = (normal.flatten(2).transpose(1, 2) * to_light).sum(-1)
+    lit = (cos > 0) & mask.flatten(1)
+    cos_c = cos.clamp_min(0.0)
+    if fresnel == "exact":
+        ft = fresnel_transmittance(cos_c, eta)
+    elif fresnel == "schlick":
+        ft = schlick_transmittance(cos_c, eta)
+    else:
+        ft = torch.ones_like(cos_c)
+    if cam.projection == "orthographic":
+        s = 2.0 * cam.ortho_half_height / resolution
+        footprint = torch.full_like(cos, s * s)
+    else:
+        s = 2.0 * math.tan(math.radians(cam.fov_deg) / 2.0) / resolution
+        view = cam.view_matrix(dtype=dtype, device=device)
+        v = transform_points(pts, view)[..., :3]
+        cos_alpha = (-v[..., 2]) / v.norm(dim=-1).clamp_min(1e-12)
+        footprint = s * s * cos_alpha**3 * torch.where(lit, dist, torch.zeros_like(dist)) ** 2
+    area = torch.where(mask.flatten(1), footprint / cos_c.clamp_min(min_cos), torch.zeros_like(footprint))
+    flux = e_perp * (footprint * ft * lit).unsqueeze(-1)
+    irradiance = e_perp * (cos_c * ft * lit).unsqueeze(-1)
+    h = w = resolution
+
+    def _img(x: Tensor) -> Tensor:
+        return x.transpose(1, 2).reshape(x.shape[0], -1, h, w)
+
+    return LightView(position, normal, _img(irradiance), _img(area.unsqueeze(-1)), _img(flux), mask,
+                     raster.face_id, cam)

@@ -1,0 +1,106 @@
+"""Dense, deterministic, area-weighted surface samples for the reference renderer.
+
+Every face is split into :math:`n^2` congruent sub-triangles (n chosen per face so that the longest
+sub-triangle edge is at most ``spacing_mm``); one sample sits at each sub-triangle's centroid and carries
+its area :math:`A_f / n^2`. The samples form a near-regular lattice on every face, which keeps the quadrature
+error of :math:`\\sum_i E_i A_i R_d(|x_i - x_o|)` small (no random noise, and aliasing controlled by the
+spacing, see :func:`torchsss.physics.splat_alias_error`), and the areas sum to the mesh area exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchsss.geometry.mesh import Mesh
+
+__all__ = ["SurfaceSamples", "subdivision_barycentrics", "surface_samples"]
+
+
+class SurfaceSamples(NamedTuple):
+    """Surface samples as point sets.
+
+    Attributes:
+        position: :math:`(N, 3)` mm.
+        normal: :math:`(N, 3)` unit shading normals (interpolated vertex normals).
+        area: :math:`(N,)` mm^2, summing to the mesh area.
+        face_id: :math:`(N,)` int64.
+        bary: :math:`(N, 3)` barycentrics within the face.
+    """
+
+    position: Tensor
+    normal: Tensor
+    area: Tensor
+    face_id: Tensor
+    bary: Tensor
+
+
+def subdivision_barycentrics(n: int, *, dtype: torch.dtype = torch.float64, device=None) -> Tensor:
+    """Barycentric centroids of the :math:`n^2` sub-triangles of a regular n-fold subdivision.
+
+    Returns:
+        :math:`(n^2, 3)` barycentric coordinates (each row sums to 1).
+
+    Examples:
+        >>> [round(v, 6) for v in subdivision_barycentrics(1)[0].tolist()]
+        [0.333333, 0.333333, 0.333333]
+        >>> tuple(subdivision_barycentrics(4).shape)
+        (16, 3)
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n: expected a positive int, got {n!r}")
+    i, j = torch.meshgrid(torch.arange(n, dtype=dtype, device=device), torch.arange(n, dtype=dtype, device=device),
+                          indexing="ij")
+    up = (i + j) <= n - 1
+    down = (i + j) <= n - 2
+    a = torch.cat([(i[up] + 1.0 / 3.0), (i[down] + 2.0 / 3.0)]) / n
+    b = torch.cat([(j[up] + 1.0 / 3.0), (j[down] + 2.0 / 3.0)]) / n
+    return torch.stack([1.0 - a - b, a, b], dim=-1)
+
+
+def surface_samples(mesh: Mesh, spacing_mm: float, *, max_samples: int = 4_000_000) -> SurfaceSamples:
+    """Area-weighted samples with at most ``spacing_mm`` between neighbours on every face.
+
+    Args:
+        mesh: the surface (mm).
+        spacing_mm: the longest sub-triangle edge (> 0).
+        max_samples: guard against a spacing that would need more samples than this (ValueError).
+
+    Returns:
+        :class:`SurfaceSamples` in the mesh's dtype and device.
+
+    Examples:
+        >>> from torchsss.geometry.procedural import plane
+        >>> s = surface_samples(plane(10.0, 10.0, 10), 1.5)  # 200 faces with 1.41 mm edges: 1 sample each
+        >>> s.position.shape[0], round(s.area.sum().item(), 6)
+        (200, 100.0)
+    """
+    if not (isinstance(spacing_mm, (int, float)) and math.isfinite(spacing_mm) and spacing_mm > 0):
+        raise ValueError(f"spacing_mm: expected a finite number > 0, got {spacing_mm!r}")
+    tri = mesh.triangles()
+    edges = torch.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], dim=1)
+    longest = edges.norm(dim=-1).amax(dim=1)
+    n_per_face = torch.ceil(longest / spacing_mm).clamp_min(1).long()
+    total = int((n_per_face * n_per_face).sum())
+    if total > max_samples:
+        raise ValueError(
+            f"spacing_mm: {spacing_mm} mm needs {total} samples on this mesh, more than max_samples={max_samples}; "
+            "raise the spacing or max_samples"
+        )
+    vn = mesh.vertex_normals
+    pos, nrm, area, fid, bary = [], [], [], [], []
+    for n in torch.unique(n_per_face).tolist():
+        faces = torch.nonzero(n_per_face == n).squeeze(1)
+        b = subdivision_barycentrics(n, dtype=tri.dtype, device=tri.device)  # (S, 3)
+        corners = tri[faces]  # (f, 3, 3)
+        pos.append(torch.einsum("sk,fkc->fsc", b, corners).reshape(-1, 3))
+        ncorners = vn[mesh.faces[faces]]
+        nrm.append(F.normalize(torch.einsum("sk,fkc->fsc", b, ncorners), dim=-1, eps=1e-12).reshape(-1, 3))
+        area.append((mesh.face_areas[faces] / (n * n)).repeat_interleave(b.shape[0]))
+        fid.append(faces.repeat_interleave(b.shape[0]))
+        bary.append(b.repeat(faces.shape[0], 1))
+    return SurfaceSamples(torch.cat(pos), torch.cat(nrm), torch.cat(area), torch.cat(fid), torch.cat(bary))

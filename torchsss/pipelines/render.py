@@ -1,0 +1,46 @@
+"""Render a :class:`~torchsss.scene.Scene` with a named method.
+
+This is the one entry point the CLI, tests and benchmarks share, so that every method is compared on exactly
+the same input.
+
+Methods register here as ``name -> function(scene, mesh, **options) -> RenderResult``. This issue ships
+``"reference"``; later methods (lensch, splat, icdf, hybrid) add their names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from torchsss.geometry.mesh import Mesh
+from torchsss.pipelines.reference import RenderResult, render_reference
+from torchsss.scene import Scene
+
+__all__ = ["METHODS", "render_scene"]
+
+
+def _reference(scene: Scene, mesh: Mesh, **options) -> RenderResult:
+    return render_reference(mesh, scene.material, scene.lights, scene.camera, **options)
+
+
+#: Rendering methods by name.
+METHODS: dict[str, Callable[..., RenderResult]] = {"reference": _reference}
+
+
+def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,
+                 **options) -> RenderResult:
+    """Load the scene's mesh and render it with ``method`` (options go to the method).
+
+    Examples:
+        >>> s = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "skin1",
+        ...     "lights": [{"type": "directional", "direction": [0, 0, -1], "irradiance": 1.0}],
+        ...     "camera": {"eye": [0, 0, 80], "target": [0, 0, 0], "width": 16, "height": 16}})
+        >>> r = render_scene(s, "reference", spacing_mm=2.0)
+        >>> tuple(r.radiance.shape), bool(r.radiance.max() > 0)
+        ((1, 3, 16, 16), True)
+    """
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
+    mesh = scene.load_mesh(dtype=dtype)
+    return METHODS[method](scene, mesh, dtype=dtype, **options)

@@ -1,0 +1,191 @@
+"""Scene files: one JSON object that every method renders, so methods compare on exactly the same input.
+
+The format is DESIGN.md §5::
+
+    {
+      "mesh": "spot",                 // a path (relative to the scene file) or a built-in name
+      "size_mm": 40.0,                // bounding-box diagonal after centring (omit to keep the file's units)
+      "material": "skin1",            // a Jensen 2001 preset, or
+                                      // {"sigma_a": [r, g, b], "sigma_s_prime": [r, g, b], "eta": 1.3} (mm^-1)
+      "lights": [{"type": "point", "position": [x, y, z], "intensity": [r, g, b]}],
+                                      // "directional": direction, irradiance; "spot": position, direction,
+                                      // intensity, cone_deg, inner_deg
+      "camera": {"eye": [x, y, z], "target": [x, y, z], "up": [0, 1, 0],
+                 "fov_deg": 40.0, "width": 256, "height": 256}
+    }
+
+Optional keys: ``"decimate"`` (target face count, quadric decimation at load), ``"name"``. Positions are in
+millimetres in the centred, scaled frame. Unknown keys are an error (a typo must not be silently ignored).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchsss.geometry.camera import Camera
+from torchsss.geometry.lights import Light, light_from_dict
+from torchsss.geometry.mesh import Mesh, builtin_mesh_names, load_mesh
+from torchsss.physics.materials import preset, preset_names
+
+__all__ = ["Material", "Scene", "default_scene_path", "load_scene"]
+
+_KEYS_REQUIRED = {"mesh", "material", "lights", "camera"}
+_KEYS_OPTIONAL = {"size_mm", "decimate", "name"}
+
+
+@dataclass(frozen=True)
+class Material:
+    """Homogeneous dipole material: per-channel coefficients in mm^-1 and the relative index of refraction."""
+
+    sigma_a: tuple[float, float, float]
+    sigma_s_prime: tuple[float, float, float]
+    eta: float = 1.3
+    name: str = "custom"
+
+    @classmethod
+    def from_json(cls, value: object) -> Material:
+        """A preset name or an object with ``sigma_a``, ``sigma_s_prime`` (3 numbers each, mm^-1) and ``eta``.
+
+        Examples:
+            >>> Material.from_json("marble").eta
+            1.3
+            >>> Material.from_json({"sigma_a": [0.1, 0.1, 0.1], "sigma_s_prime": [1, 1, 1]}).sigma_s_prime
+            (1.0, 1.0, 1.0)
+        """
+        if isinstance(value, str):
+            p = preset(value)
+            return cls(p.sigma_a, p.sigma_s_prime, p.eta, p.name)
+        if not isinstance(value, Mapping):
+            raise TypeError(f"material: expected a preset name {preset_names()} or an object, got {value!r}")
+        unknown = set(value) - {"sigma_a", "sigma_s_prime", "eta", "name"}
+        if unknown or not {"sigma_a", "sigma_s_prime"} <= set(value):
+            raise ValueError(
+                f"material: expected keys sigma_a, sigma_s_prime and optional eta, name; got {sorted(value)}"
+            )
+
+        def rgb(key: str, positive: bool) -> tuple[float, float, float]:
+            v = value[key]
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                v = [v] * 3
+            if not isinstance(v, Sequence) or len(v) != 3:
+                raise ValueError(f"material.{key}: expected 3 numbers (mm^-1), got {v!r}")
+            out = tuple(float(x) for x in v)
+            if not all(math.isfinite(x) and (x > 0 if positive else x >= 0) for x in out):
+                raise ValueError(f"material.{key}: expected finite values {'> 0' if positive else '>= 0'}, got {v!r}")
+            return out  # type: ignore[return-value]
+
+        eta = float(value.get("eta", 1.3))
+        if not (math.isfinite(eta) and eta > 0):
+            raise ValueError(f"material.eta: expected a finite value > 0, got {value.get('eta')!r}")
+        return cls(rgb("sigma_a", False), rgb("sigma_s_prime", True), eta, str(value.get("name", "custom")))
+
+    def tensors(self, dtype: torch.dtype = torch.float64, device=None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(sigma_a (3,), sigma_s_prime (3,), eta ())`` tensors in mm^-1."""
+        return (torch.tensor(self.sigma_a, dtype=dtype, device=device),
+                torch.tensor(self.sigma_s_prime, dtype=dtype, device=device),
+                torch.tensor(self.eta, dtype=dtype, device=device))
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A parsed scene file (see the module docstring for the format)."""
+
+    mesh: str
+    material: Material
+    lights: tuple[Light, ...]
+    camera: Camera
+    size_mm: float | None = None
+    decimate: int | None = None
+    name: str = "scene"
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    @classmethod
+    def from_dict(cls, d: Mapping, base_dir: str | Path | None = None) -> Scene:
+        """Validate and parse a scene object; relative mesh paths resolve against ``base_dir``.
+
+        Examples:
+            >>> s = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "marble",
+            ...     "lights": [{"type": "point", "position": [0, 0, 100], "intensity": 1e4}],
+            ...     "camera": {"eye": [0, 0, 80], "target": [0, 0, 0], "width": 32, "height": 32}})
+            >>> s.material.name, s.camera.width, s.lights[0].kind
+            ('marble', 32, 'point')
+        """
+        if not isinstance(d, Mapping):
+            raise TypeError(f"scene: expected a JSON object, got {type(d).__name__}")
+        keys = set(d)
+        if missing := _KEYS_REQUIRED - keys:
+            raise ValueError(f"scene: missing keys {sorted(missing)}")
+        if unknown := keys - _KEYS_REQUIRED - _KEYS_OPTIONAL:
+            allowed = sorted(_KEYS_REQUIRED | _KEYS_OPTIONAL)
+            raise ValueError(f"scene: unknown keys {sorted(unknown)}; allowed {allowed}")
+        if not isinstance(d["mesh"], str) or not d["mesh"]:
+            raise TypeError(f"scene.mesh: expected a path or one of {builtin_mesh_names()}, got {d['mesh']!r}")
+        size = d.get("size_mm")
+        if size is not None:
+            if isinstance(size, bool) or not isinstance(size, (int, float)) or not (math.isfinite(size) and size > 0):
+                raise ValueError(f"scene.size_mm: expected a finite number > 0 (mm), got {size!r}")
+            size = float(size)
+        dec = d.get("decimate")
+        if dec is not None and (isinstance(dec, bool) or not isinstance(dec, int) or dec < 4):
+            raise ValueError(f"scene.decimate: expected an int >= 4 (target face count), got {dec!r}")
+        lights = d["lights"]
+        if not isinstance(lights, Sequence) or isinstance(lights, str) or len(lights) == 0:
+            raise ValueError(f"scene.lights: expected a non-empty list of lights, got {lights!r}")
+        if not isinstance(d["camera"], Mapping):
+            raise TypeError(f"scene.camera: expected an object, got {d['camera']!r}")
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+        return cls(
+            mesh=d["mesh"],
+            material=Material.from_json(d["material"]),
+            lights=tuple(light_from_dict(x) for x in lights),
+            camera=Camera.from_dict(d["camera"]),
+            size_mm=size,
+            decimate=dec,
+            name=str(d.get("name", "scene")),
+            base_dir=base,
+        )
+
+    def mesh_source(self) -> str:
+        """The mesh argument for :func:`~torchsss.geometry.mesh.load_mesh`: a built-in name or a resolved path."""
+        if self.mesh in builtin_mesh_names():
+            return self.mesh
+        path = Path(self.mesh)
+        if not path.is_absolute():
+            path = self.base_dir / path
+        if not path.is_file():
+            raise ValueError(f"scene.mesh: expected an existing file or one of {builtin_mesh_names()}, got {path}")
+        return str(path)
+
+    def load_mesh(self, dtype: torch.dtype = torch.float32) -> Mesh:
+        """Load, clean, scale (and decimate) the scene's mesh."""
+        return load_mesh(self.mesh_source(), self.size_mm, decimate_to=self.decimate, dtype=dtype)
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read a scene JSON file (relative mesh paths resolve against the file's folder).
+
+    Examples:
+        >>> load_scene(default_scene_path()).mesh
+        'spot'
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"scene: expected an existing JSON file, got {path}")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"scene: {path} is not valid JSON: {err}") from err
+    return Scene.from_dict(data, base_dir=path.parent)
+
+
+def default_scene_path() -> Path:
+    """The shipped default scene: the embedded spot mesh, back-lit, in a Jensen preset."""
+    return Path(str(resources.files("torchsss").joinpath("data/scenes/default.json")))
