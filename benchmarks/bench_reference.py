@@ -27,7 +27,7 @@ import torch
 from torchsss.bench import write_results
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.lights import DirectionalLight, PointLight
-from torchsss.geometry.mesh import load_mesh
+from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.procedural import plane
 from torchsss.geometry.sampling import surface_samples
 from torchsss.physics import fresnel_transmittance, total_diffuse_reflectance

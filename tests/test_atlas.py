@@ -10,7 +10,8 @@ import torch
 import torch.nn.functional as F
 
 from torchsss.geometry.atlas import Atlas, _coverage_count, _uv_islands, build_atlas, parameterize
-from torchsss.geometry.mesh import Mesh, load_mesh
+from torchsss.geometry.loading import load_mesh
+from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.procedural import sphere, torus
 
 # --------------------------------------------------------------------------------------------------------------

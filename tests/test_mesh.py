@@ -10,16 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from torchsss.geometry.mesh import (
-    Mesh,
-    MeshWarning,
-    builtin_mesh_names,
-    builtin_mesh_path,
-    decimate,
-    load_mesh,
-    mesh_from_arrays,
-    normalize_to_size,
-)
+from torchsss.geometry.loading import builtin_mesh_names, builtin_mesh_path, load_mesh
+from torchsss.geometry.mesh import Mesh, MeshWarning, decimate, mesh_from_arrays, normalize_to_size
 from torchsss.geometry.procedural import plane, slab, sphere, torus
 
 

@@ -32,7 +32,8 @@ from torch import Tensor
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.lights import Light, light_from_dict
-from torchsss.geometry.mesh import Mesh, builtin_mesh_names, load_mesh
+from torchsss.geometry.loading import builtin_mesh_names, load_mesh
+from torchsss.geometry.mesh import Mesh
 from torchsss.physics.materials import preset, preset_names
 
 __all__ = ["Material", "Scene", "default_scene_path", "load_scene"]
@@ -154,7 +155,7 @@ class Scene:
         )
 
     def mesh_source(self) -> str:
-        """The mesh argument for :func:`~torchsss.geometry.mesh.load_mesh`: a built-in name or a resolved path."""
+        """The mesh argument for :func:`~torchsss.geometry.loading.load_mesh`: a built-in name or a resolved path."""
         if self.mesh in builtin_mesh_names():
             return self.mesh
         path = Path(self.mesh)

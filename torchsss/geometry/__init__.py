@@ -17,16 +17,8 @@ from torchsss.geometry.lights import (
     light_from_dict,
     surface_irradiance,
 )
-from torchsss.geometry.mesh import (
-    Mesh,
-    MeshWarning,
-    builtin_mesh_names,
-    builtin_mesh_path,
-    decimate,
-    load_mesh,
-    mesh_from_arrays,
-    normalize_to_size,
-)
+from torchsss.geometry.loading import builtin_mesh_names, builtin_mesh_path, load_mesh
+from torchsss.geometry.mesh import Mesh, MeshWarning, decimate, mesh_from_arrays, normalize_to_size
 from torchsss.geometry.procedural import plane, slab, sphere, torus
 from torchsss.geometry.raster import Raster, interpolate, rasterize, rasterize_uv
 from torchsss.geometry.sampling import SurfaceSamples, subdivision_barycentrics, surface_samples

@@ -65,7 +65,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
+import xatlas
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.raster import interpolate, rasterize_uv
@@ -361,8 +363,6 @@ def _check_mesh_uvs(mesh: Mesh, resolution: int, padding: int) -> Tensor:
 
 
 def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int, texels_per_unit: float):
-    import xatlas
-
     atlas = xatlas.Atlas()
     atlas.add_mesh(vertices, faces)
     pack = xatlas.PackOptions()
@@ -592,8 +592,6 @@ def build_atlas(
         raise TypeError(f"use_mesh_uvs: expected a bool, got {type(use_mesh_uvs).__name__}")
     if texel_area not in _TEXEL_AREAS:
         raise ValueError(f"texel_area: expected one of {_TEXEL_AREAS}, got {texel_area!r}")
-
-    from tqdm.auto import tqdm
 
     with tqdm(total=3, desc="atlas", disable=not progress, leave=False) as bar:
         bar.set_postfix_str("parameterise")
