@@ -185,14 +185,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--eps", type=float, default=0.01, help="reference: tolerance of the default spacing")
     p_ren.add_argument("--shadows", default="raytrace", choices=["raytrace", "shadowmap", "none"],
                        help="reference: visibility of the lights")
+    p_ren.add_argument("--atlas-resolution", type=int, default=512, help="lensch: texture atlas size (texels)")
+    p_ren.add_argument("--kernel-size", type=int, default=7, help="lensch: local kernel size k (odd)")
+    p_ren.add_argument("--threshold", type=float, default=1e-5,
+                       help="lensch: throughput threshold relative to the largest entry")
+    p_ren.add_argument("--no-blend", action="store_true", help="lensch: skip the local/global blending of §5.4")
     p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
     args = parser.parse_args(argv)
     if args.command == "render":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")
-        options = {"eps": args.eps, "shadows": args.shadows, "progress": not args.no_progress}
-        if args.spacing is not None:
-            options["spacing_mm"] = args.spacing
+        options = {"progress": not args.no_progress}
+        if args.method == "reference":
+            options.update(eps=args.eps, shadows=args.shadows)
+            if args.spacing is not None:
+                options["spacing_mm"] = args.spacing
+        elif args.method == "lensch":
+            options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
+                           threshold=args.threshold, blend=not args.no_blend)
         try:
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution)
@@ -200,9 +210,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]
         print(f"wrote {summary['exr']}, {summary['png']}, {args.out.with_suffix('.json')}")
-        print(f"{summary['method']}: {summary['width']}x{summary['height']}, {summary['covered_pixels']} covered "
-              f"pixels, {st.get('samples', '-')} surface samples ({st.get('spacing_mm', float('nan')):.3f} mm), "
-              f"{summary['seconds']:.1f} s")
+        head = (f"{summary['method']}: {summary['width']}x{summary['height']}, "
+                f"{summary['covered_pixels']} covered pixels")
+        if "samples" in st:
+            head += f", {st['samples']} surface samples ({st['spacing_mm']:.3f} mm)"
+        if "t_frame_s" in st:
+            head += (f", atlas {st['atlas_resolution']}², {st['nnz']} throughput entries, precompute "
+                     f"{st['t_precompute_s']:.1f} s, frame {1e3 * st['t_frame_s']:.0f} ms")
+        print(f"{head}, {summary['seconds']:.1f} s in all")
     if args.command == "profiles":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")

@@ -8,6 +8,17 @@ and irradiance with Fresnel and shadows. All lengths are millimetres.
 from torchsss.geometry.atlas import Atlas, build_atlas, parameterize
 from torchsss.geometry.camera import Camera, look_at, orthographic, perspective, pixel_centers_ndc, transform_points
 from torchsss.geometry.gbuffer import GBuffer, LightView, camera_gbuffer, light_view
+from torchsss.geometry.lensch import (
+    BlendWeights,
+    LocalKernelGeometry,
+    Throughput,
+    VertexWeights,
+    blending_weights,
+    build_throughput,
+    local_kernel_geometry,
+    throughput_values,
+    vertex_weights,
+)
 from torchsss.geometry.lights import (
     DirectionalLight,
     Light,
@@ -27,11 +38,13 @@ from torchsss.geometry.visibility import point_inside, ray_visibility
 
 __all__ = [
     "Atlas",
+    "BlendWeights",
     "Camera",
     "DirectionalLight",
     "GBuffer",
     "Light",
     "LightView",
+    "LocalKernelGeometry",
     "Mesh",
     "MeshWarning",
     "PointLight",
@@ -39,9 +52,13 @@ __all__ = [
     "ShadowMap",
     "SpotLight",
     "SurfaceSamples",
+    "Throughput",
+    "VertexWeights",
+    "blending_weights",
     "bounding_sphere",
     "build_atlas",
     "build_shadow_map",
+    "build_throughput",
     "builtin_mesh_names",
     "builtin_mesh_path",
     "camera_gbuffer",
@@ -52,6 +69,7 @@ __all__ = [
     "light_from_dict",
     "light_view",
     "load_mesh",
+    "local_kernel_geometry",
     "look_at",
     "mesh_from_arrays",
     "normalize_to_size",
@@ -70,6 +88,8 @@ __all__ = [
     "subdivision_barycentrics",
     "surface_irradiance",
     "surface_samples",
+    "throughput_values",
     "torus",
     "transform_points",
+    "vertex_weights",
 ]

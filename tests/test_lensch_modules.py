@@ -1,0 +1,225 @@
+"""Lensch modules: irradiance atlas, local and global response, the composed method, gradients, export."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchsss.geometry import DirectionalLight, PointLight, build_atlas, sphere, surface_irradiance
+from torchsss.geometry.camera import Camera
+from torchsss.geometry.lensch import build_throughput, local_kernel_geometry, vertex_weights
+from torchsss.modules import DipoleMaterial
+from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
+from torchsss.ops.sv_conv import sv_conv2d_reference
+from torchsss.physics import dipole_cumulative, total_diffuse_reflectance
+from torchsss.pipelines.lensch import render_lensch
+from torchsss.pipelines.reference import render_reference
+from torchsss.scene import Material
+
+
+@pytest.fixture(scope="module")
+def small():
+    mesh = sphere(6.0, 3, dtype=torch.float64)
+    atlas = build_atlas(mesh, 64, kernel_size=5)
+    return mesh, atlas
+
+
+def _material(name="skin1", dtype=torch.float64):
+    sa, ss, eta = Material.from_json(name).tensors(dtype)
+    return DipoleMaterial(sa, ss, eta)
+
+
+def test_irradiance_atlas_matches_surface_irradiance(small):
+    _, atlas = small
+    mod = IrradianceAtlas.from_atlas(atlas, eta=1.3)
+    pts = atlas.position.flatten(2).transpose(1, 2)
+    nrm = atlas.normal.flatten(2).transpose(1, 2)
+    for light, hom, inten in (
+        (PointLight((20.0, 10.0, 30.0), (1e3, 2e3, 3e3)), [20.0, 10.0, 30.0, 1.0], [1e3, 2e3, 3e3]),
+        (DirectionalLight((0.0, -0.6, -0.8), (1.0, 2.0, 3.0)), [0.0, 0.6, 0.8, 0.0], [1.0, 2.0, 3.0]),
+    ):
+        e = mod(torch.tensor([hom], dtype=torch.float64), torch.tensor([inten], dtype=torch.float64))
+        want = surface_irradiance(pts, nrm, light, 1.3).transpose(1, 2).reshape(1, 3, 64, 64) * atlas.valid_mask
+        torch.testing.assert_close(e, want, rtol=1e-10, atol=1e-12)
+
+
+def test_local_response_is_the_kernel_convolution(small):
+    _, atlas = small
+    geom = local_kernel_geometry(atlas, 5)
+    mat = _material()
+    local = LocalResponse(geom, mat, self_term="point")
+    k = local.kernels()
+    want = geom.area.unsqueeze(-1) * mat(geom.distance.unsqueeze(-1))
+    torch.testing.assert_close(k, want.permute(4, 0, 1, 2, 3))
+    # the default self term: the closed-form disk integral of R_d over the texel's area at the centre tap
+    kd = LocalResponse(geom, mat).kernels()
+    disk = dipole_cumulative(torch.sqrt(geom.area[:, :, 2, 2] / math.pi).unsqueeze(-1), mat.sigma_a,
+                             mat.sigma_s_prime, mat.eta)
+    torch.testing.assert_close(kd[:, :, :, 2, 2], disk.permute(2, 0, 1))
+    off = torch.ones(5, 5, dtype=torch.bool)
+    off[2, 2] = False
+    torch.testing.assert_close(kd[..., off], k[..., off])
+    e = torch.rand(2, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
+    out = local(e)
+    for c in range(3):
+        ref = sv_conv2d_reference(e[:, c:c + 1], k[c])
+        torch.testing.assert_close(out[:, c:c + 1], ref, rtol=1e-10, atol=1e-14)
+
+
+def test_global_response_against_dense_sums(small):
+    mesh, atlas = small
+    mat = _material()
+    w = vertex_weights(mesh, atlas)
+    tp = build_throughput(mesh, *Material.from_json("skin1").tensors(torch.float64), threshold=0.0)
+    glob = GlobalResponse(w, tp, mat, atlas.valid_mask, method="scatter")
+    e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
+    eg = glob.vertex_irradiance(e)
+    ids = w.vertex_ids.reshape(3, -1)
+    dual = w.dual.reshape(3, -1)
+    want = torch.zeros(mesh.num_vertices, 3, dtype=torch.float64)
+    for k in range(3):
+        want.index_add_(0, ids[k], (dual[k].unsqueeze(-1) * e[0].reshape(3, -1).T))
+    torch.testing.assert_close(eg[0], want)
+    # full (threshold 0) throughput = dense F^T E^g
+    v = mesh.vertices
+    d = (v[:, None, :] - v[None, :, :]).norm(dim=-1, keepdim=True)
+    f = mesh.vertex_areas[:, None, None] * mat(d)  # (N, N, C): F_ij
+    n = mesh.num_vertices
+    f[torch.arange(n), torch.arange(n)] = dipole_cumulative(  # the diagonal: R_d integrated over the vertex's disk
+        torch.sqrt(mesh.vertex_areas / math.pi).unsqueeze(-1), mat.sigma_a, mat.sigma_s_prime, mat.eta)
+    dense = torch.einsum("ic,ijc->jc", eg[0], f)
+    torch.testing.assert_close(glob.vertex_radiosity(e)[0], dense, rtol=1e-9, atol=1e-12)
+    csr = GlobalResponse(w, tp, mat, atlas.valid_mask, method="csr")
+    with torch.no_grad():
+        torch.testing.assert_close(csr(e), glob(e), rtol=1e-9, atol=1e-12)
+
+
+def test_material_gradients_flow(small):
+    mesh, atlas = small
+    mat = _material()
+    sa, ss, eta = Material.from_json("skin1").tensors(torch.float64)
+    module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 5), mat),
+                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                               atlas.valid_mask, method="scatter"))
+    e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
+    module(e).sum().backward()
+    grads = [p.grad for p in mat.parameters()]
+    assert all(g is not None and bool(torch.isfinite(g).all()) and float(g.abs().sum()) > 0 for g in grads)
+
+
+def test_gradcheck_wrt_irradiance():
+    mesh = sphere(4.0, 1, dtype=torch.float64)
+    atlas = build_atlas(mesh, 24, kernel_size=3)
+    sa, ss, eta = Material.from_json("marble").tensors(torch.float64)
+    mat = DipoleMaterial(sa, ss, eta)
+    module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 3), mat),
+                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                               atlas.valid_mask, method="scatter"))
+    e = (torch.rand(1, 3, 24, 24, dtype=torch.float64) * atlas.valid_mask).requires_grad_()
+    assert torch.autograd.gradcheck(module, (e,), eps=1e-6, atol=1e-8)
+
+
+def test_heterogeneous_painted_region(small):
+    """M_d < 1 in a region spreads its light farther (blurrier); M_i = 2 doubles what it sends (brighter)."""
+    _, atlas = small
+    geom = local_kernel_geometry(atlas, 5)
+    painted = (atlas.position[:, 0:1] > 2.0).to(torch.float64)  # the +x cap
+    md = 1.0 - 0.5 * painted
+    mi = 1.0 + painted
+    base = LocalResponse(geom, _material())
+    blur = LocalResponse(geom, _material(), distance_scale=md)
+    bright = LocalResponse(geom, _material(), irradiance_scale=mi.expand(1, 3, 64, 64))
+    # one lit texel inside the painted region, one outside
+    cand = torch.nonzero((painted[0, 0] > 0) & atlas.chart_mask[0, 0])
+    idx = cand[len(cand) // 2]
+    e = torch.zeros(1, 3, 64, 64, dtype=torch.float64)
+    e[0, :, idx[0], idx[1]] = 1.0
+    b0, b1, b2 = base(e), blur(e), bright(e)
+    r = (atlas.position - atlas.position[:, :, idx[0], idx[1]].view(1, 3, 1, 1)).norm(dim=1, keepdim=True)
+    spread = lambda b: float((b[:, 0:1] * r**2).sum() / b[:, 0:1].sum())  # noqa: E731
+    assert spread(b1) > spread(b0) * 1.2, "M_d < 1 must spread the light farther"
+    assert float(b1.sum()) > float(b0.sum())
+    torch.testing.assert_close(b2, 2.0 * b0)
+
+
+def test_render_lensch_close_to_reference():
+    mesh = sphere(10.0, 4)
+    material = Material.from_json("skin1")
+    lights = [PointLight((40.0, 30.0, 30.0), 5e3)]
+    cam = Camera(eye=(0.0, 10.0, 60.0), target=(0.0, 0.0, 0.0), fov_deg=30.0, width=48, height=48)
+    ref = render_reference(mesh, material, lights, cam, shadows="shadowmap")
+    res = render_lensch(mesh, material, lights, cam, resolution=256)
+    m = ref.mask & res.mask
+    diff = (res.radiance - ref.radiance)[m.expand_as(ref.radiance)]
+    rel_rmse = float(diff.pow(2).mean().sqrt() / ref.radiance[m.expand_as(ref.radiance)].pow(2).mean().sqrt())
+    print(f"lensch vs reference, sphere r=10 mm skin1, atlas 256: relative RMSE {rel_rmse:.3%}")
+    assert rel_rmse < 0.10
+    assert res.stats["t_frame_s"] > 0 and res.stats["nnz"] > 0
+
+
+def test_per_frame_module_exports_to_onnx(small, tmp_path):
+    pytest.importorskip("onnxruntime")
+    from torchsss.export import export_onnx, run_onnxruntime
+
+    mesh, _ = small
+    sa, ss, eta = Material.from_json("skin1").tensors(torch.float32)
+    mesh32 = mesh.with_dtype(torch.float32)
+    atlas32 = build_atlas(mesh32, 64, kernel_size=5)
+    mat = DipoleMaterial(sa, ss, eta)
+    module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas32, 5), mat),
+                                GlobalResponse(vertex_weights(mesh32, atlas32), build_throughput(mesh32, sa, ss, eta),
+                                               mat, atlas32.valid_mask)).eval()
+    e = torch.rand(1, 3, 64, 64) * atlas32.valid_mask
+    path = export_onnx(module, (e,), tmp_path / "lensch.onnx")
+    e2 = torch.rand(1, 3, 64, 64) * atlas32.valid_mask
+    (got,) = run_onnxruntime(path, (e2,))
+    with torch.no_grad():
+        want = module(e2)
+    rel = float((torch.from_numpy(got) - want).abs().max() / want.abs().max())
+    assert rel < 1e-5, rel
+    assert math.isfinite(rel)
+
+
+def test_extremes_tiny_and_huge_r_max():
+    """r_max far below a texel (local kernel ~ identity) and far beyond the object (global term dominates)."""
+    mesh = sphere(5.0, 2, dtype=torch.float64)
+    atlas = build_atlas(mesh, 128, kernel_size=5)
+    chart = atlas.chart_mask.expand(1, 3, 128, 128)
+    for sa_v, ss_v in ((50.0, 500.0), (1e-4, 0.05)):
+        sa = torch.full((3,), sa_v, dtype=torch.float64)
+        ss = torch.full((3,), ss_v, dtype=torch.float64)
+        mat = DipoleMaterial(sa, ss, torch.tensor(1.3, dtype=torch.float64))
+        local = LocalResponse(local_kernel_geometry(atlas, 5), mat)
+        glob = GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, 1.3), mat,
+                              atlas.valid_mask)
+        e = torch.ones(1, 3, 128, 128, dtype=torch.float64) * atlas.valid_mask
+        with torch.no_grad():
+            bl, bg = local(e), glob(e)
+        b = bl + bg
+        assert bool(torch.isfinite(b).all()) and float(b[chart].min()) > 0
+        r_total = float(total_diffuse_reflectance(sa, ss, 1.3)[0])
+        if sa_v > 1:  # r_max << texel: the local kernel is the identity times the disk integral ~ R_total
+            assert float(bl[chart].mean()) == pytest.approx(r_total, rel=0.05)
+        else:  # the global term carries (almost) everything
+            assert float(bg[chart].mean()) > 20 * float(bl[chart].mean())
+
+
+def test_cached_kernels_follow_material_edits(small):
+    """Relighting reuses the evaluated kernels/throughput, but an edited material is never served stale."""
+    mesh, atlas = small
+    sa, ss, eta = Material.from_json("skin1").tensors(torch.float64)
+    mat = DipoleMaterial(sa, ss, eta)
+    module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 5), mat),
+                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                               atlas.valid_mask))
+    e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
+    with torch.no_grad():
+        first, again = module(e), module(e)
+        torch.testing.assert_close(first, again)
+        next(iter(mat.parameters())).add_(0.5)  # edit the material in place
+        edited = module(e)
+    fresh = module(e).detach()  # with autograd: recomputed from scratch
+    torch.testing.assert_close(edited, fresh)
+    assert float((edited - first).abs().max()) > 1e-6

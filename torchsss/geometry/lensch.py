@@ -1,0 +1,604 @@
+"""Precomputation for Lensch et al. 2002 (local kernels, dual-basis vertex weights, vertex throughput, blending).
+
+Everything here is build-once geometry (DESIGN.md §3): plain tensors in named tuples, no nn.Modules. The
+modules store these tensors as buffers and evaluate the profile on the stored *distances*, so that material
+edits and gradients stay live.
+
+- :func:`local_kernel_geometry` (Lensch §5.3, §6.3): for every receiver texel ``o`` and every offset of its
+  ``k x k`` window, the distance to the source texel ``s`` and the source's area. Gather form (DESIGN.md §1):
+  :math:`B^l(o) = \\sum_s A(s) R_d(|x_o - x_s|) E(s)`, i.e. ``kernel = area * R_d(distance)`` weighting
+  ``image[y + i - k//2, x + j - k//2]``.
+- :func:`vertex_weights` (Lensch §5.2, §6.1 eq. 10): the dual hat basis
+  :math:`\\tilde\\psi_\\nu = 3/A_\\nu (4\\beta_\\nu - 1)` times the texel area, so that
+  :math:`E^g_i = \\sum_{texels} \\mathrm{dual} \\cdot E`, and the barycentrics to interpolate vertex values back.
+- :func:`build_throughput` (Lensch §5.2, §6.2): the sparse pattern of
+  :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j|)` (source ``i``, receiver ``j``, :math:`B^g_j = \\sum_i E^g_i F_{ij}`),
+  built blockwise; :func:`throughput_values` evaluates it for any profile.
+- :func:`blending_weights` (Lensch §5.4): the per-texel direct-radiosity weights :math:`w_\\nu(u, v)` fitted on
+  the ring of the ``(k+2) x (k+2)`` window and the matching kernel corrections.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import time
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from torchsss._checks import as_float_tensor
+from torchsss.geometry.atlas import Atlas
+from torchsss.geometry.mesh import Mesh
+from torchsss.physics.dipole import dipole_rd
+
+__all__ = [
+    "BlendWeights",
+    "LocalKernelGeometry",
+    "Throughput",
+    "VertexWeights",
+    "blending_weights",
+    "build_throughput",
+    "local_kernel_geometry",
+    "throughput_values",
+    "vertex_weights",
+]
+
+_MAX_KERNEL = 63
+_RIDGE = 1e-12  # relative ridge of the 3 x 3 blending normal equations
+_TINY = 1e-300  # absolute ridge (rings that see none of the three vertices get w = 0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# argument checks
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _check_atlas(atlas: object) -> Atlas:
+    if not isinstance(atlas, Atlas):
+        raise TypeError(f"atlas: expected a torchsss.geometry.Atlas, got {type(atlas).__name__}")
+    return atlas
+
+
+def _check_mesh(mesh: object) -> Mesh:
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh: expected a torchsss.geometry.Mesh, got {type(mesh).__name__}")
+    if mesh.num_faces == 0:
+        raise ValueError("mesh: expected at least one face, got 0")
+    return mesh
+
+
+def _check_kernel_size(kernel_size: object) -> int:
+    if isinstance(kernel_size, bool) or not isinstance(kernel_size, numbers.Integral):
+        raise TypeError(f"kernel_size: expected an odd int, got {type(kernel_size).__name__}")
+    k = int(kernel_size)
+    if k < 1 or k % 2 == 0 or k > _MAX_KERNEL:
+        raise ValueError(f"kernel_size: expected an odd int in [1, {_MAX_KERNEL}] (7 in Lensch et al.), got {k}")
+    return k
+
+
+def _check_threshold(threshold: object, relative: object) -> tuple[float, bool]:
+    if not isinstance(relative, bool):
+        raise TypeError(f"relative: expected a bool, got {type(relative).__name__}")
+    if isinstance(threshold, bool) or not isinstance(threshold, numbers.Real):
+        raise TypeError(f"threshold: expected a non-negative number, got {type(threshold).__name__}")
+    t = float(threshold)
+    if not math.isfinite(t) or t < 0 or (relative and t > 1):
+        expected = "a number in [0, 1] (relative to max F)" if relative else "a finite number >= 0"
+        raise ValueError(f"threshold: expected {expected}, got {threshold!r}")
+    return t, relative
+
+
+def _check_bool(x: object, name: str) -> bool:
+    if not isinstance(x, bool):
+        raise TypeError(f"{name}: expected a bool, got {type(x).__name__}")
+    return x
+
+
+def _material(mesh: Mesh, sigma_a: object, sigma_s_prime: object, eta: object) -> tuple[Tensor, Tensor, Tensor]:
+    """Material as float64 tensors on the mesh's device; validated by a probe evaluation of the profile."""
+    like = torch.zeros((), dtype=torch.float64, device=mesh.device)
+    sa = as_float_tensor(sigma_a, "sigma_a", like=like).detach().to(like)
+    ss = as_float_tensor(sigma_s_prime, "sigma_s_prime", like=like).detach().to(like)
+    et = as_float_tensor(eta, "eta", like=like).detach().to(like)
+    for name, x in (("sigma_a", sa), ("sigma_s_prime", ss), ("eta", et)):
+        if x.dim() > 1:
+            raise ValueError(f"{name}: expected a scalar or a (C,) tensor, got shape {tuple(x.shape)}")
+    dipole_rd(like.view(1, 1), sa, ss, et)  # raises on bad coefficients / shapes
+    return sa, ss, et
+
+
+def _distance(a: Tensor, b: Tensor) -> Tensor:
+    """Euclidean distance over the last dimension, written out so that every caller rounds the same way."""
+    diff = a - b
+    return torch.sqrt((diff * diff).sum(-1))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# local kernels
+# --------------------------------------------------------------------------------------------------------------
+
+
+class LocalKernelGeometry(NamedTuple):
+    """Geometry of the per-texel ``k x k`` local kernels in gather form (see :func:`local_kernel_geometry`).
+
+    Attributes:
+        distance: :math:`(H, W, k, k)` mm, :math:`|x_o - x_s|` for receiver ``o = (y, x)`` and source
+            ``s = (y + i - k//2, x + j - k//2)``; 0 wherever ``area`` is 0.
+        area: :math:`(H, W, k, k)` mm^2, the source texel's ``atlas.area``; 0 where the receiver or the source
+            is not valid or the source lies outside the image.
+        kernel_size: ``k``.
+    """
+
+    distance: Tensor
+    area: Tensor
+    kernel_size: int
+
+
+def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeometry:
+    """Distances and source areas of the spatially varying local kernels (Lensch §5.3, gather form).
+
+    The kernel of receiver texel ``o = (y, x)`` is ``area[y, x] * R_d(distance[y, x])`` and weights
+    ``E[y + i - k//2, x + j - k//2]``, i.e. :math:`B^l(o) = \\sum_s A(s) R_d(|x_o - x_s|) E(s)`: Lensch writes
+    the kernel as a scatter with the *source* area :math:`A(u, v)`; in gather form that is the area of the
+    texel read, not of the receiver. Gutter texels (``valid_mask`` but not ``chart_mask``) are kept as sources
+    and receivers: they are what lets a kernel read across a chart edge. Built from ``k^2`` shifted slices of
+    the padded buffers (no loop over texels), in the atlas's dtype and device.
+
+    Args:
+        atlas: The texture atlas; its ``padding`` should be at least ``k // 2`` (``build_atlas(..., kernel_size=k)``).
+        kernel_size: Odd ``k`` in [1, 63]; Lensch uses 7.
+
+    Returns:
+        :class:`LocalKernelGeometry` with ``distance`` and ``area`` of shape :math:`(H, W, k, k)`.
+
+    Raises:
+        TypeError: ``atlas`` is not an :class:`~torchsss.geometry.Atlas` or ``kernel_size`` not an int.
+        ValueError: ``kernel_size`` even or out of range.
+
+    Examples:
+        >>> from torchsss.geometry import build_atlas, sphere
+        >>> atlas = build_atlas(sphere(5.0, 2), 64, kernel_size=3)
+        >>> geo = local_kernel_geometry(atlas, 3)
+        >>> tuple(geo.distance.shape), geo.kernel_size
+        ((64, 64, 3, 3), 3)
+        >>> bool((geo.area[..., 1, 1] == atlas.area[0, 0] * atlas.valid_mask[0, 0]).all())  # centre tap: itself
+        True
+    """
+    atlas = _check_atlas(atlas)
+    k = _check_kernel_size(kernel_size)
+    r = k // 2
+    height, width = atlas.shape
+    pos = atlas.position[0]  # (3, H, W)
+    valid = atlas.valid_mask[0, 0]
+    area = atlas.area[0, 0] * valid
+    pos_p = F.pad(pos, (r, r, r, r))
+    area_p = F.pad(area, (r, r, r, r))
+    valid_p = F.pad(valid.to(pos.dtype), (r, r, r, r)) > 0
+    distances, areas = [], []
+    for i in range(k):
+        for j in range(k):
+            keep = valid & valid_p[i:i + height, j:j + width]
+            d = _distance(pos.permute(1, 2, 0), pos_p[:, i:i + height, j:j + width].permute(1, 2, 0))
+            distances.append(torch.where(keep, d, torch.zeros_like(d)))
+            areas.append(torch.where(keep, area_p[i:i + height, j:j + width], torch.zeros_like(d)))
+    distance = torch.stack(distances, -1).view(height, width, k, k)
+    source_area = torch.stack(areas, -1).view(height, width, k, k)
+    return LocalKernelGeometry(distance, source_area, k)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# dual-basis vertex weights
+# --------------------------------------------------------------------------------------------------------------
+
+
+class VertexWeights(NamedTuple):
+    """Per-texel weights linking the atlas to the mesh vertices (see :func:`vertex_weights`).
+
+    Attributes:
+        vertex_ids: :math:`(1, 3, H, W)` int64, the three vertices of the texel's face; 0 where not valid.
+        dual: :math:`(1, 3, H, W)` :math:`\\tilde\\psi_\\nu(x) A(x) = 3/A_\\nu (4\\beta_\\nu - 1) A(x)` on chart
+            texels, 0 elsewhere (gutters would count their surface twice).
+        bary: :math:`(1, 3, H, W)` barycentrics :math:`\\beta_\\nu` on valid texels (extrapolated in gutters),
+            0 elsewhere.
+    """
+
+    vertex_ids: Tensor
+    dual: Tensor
+    bary: Tensor
+
+
+def vertex_weights(mesh: Mesh, atlas: Atlas) -> VertexWeights:
+    """Dual hat-basis weights (Lensch eq. 10) and interpolation weights of every atlas texel.
+
+    Projection to vertices: :math:`E^g_i = \\sum_{texels} \\mathrm{dual}_\\nu E` summed over the texels whose
+    face has ``vertex_ids_nu == i`` (e.g. ``index_add`` / ``scatter_add`` over ``vertex_ids``), with
+    :math:`A_\\nu = 3\\,` ``mesh.vertex_areas`` (sum of the areas of the faces around the vertex). Because
+    :math:`\\int \\tilde\\psi_i \\psi_j = \\delta_{ij}`, the projection reproduces any function that is linear on
+    every face (e.g. linear in position) up to texel quadrature, and since :math:`\\sum_\\nu (4\\beta_\\nu - 1)
+    = 1`, :math:`\\sum_i E^g_i\\,` ``vertex_areas_i`` equals :math:`\\sum E\\,` ``area * chart_mask`` exactly.
+    Reconstruction on texels: :math:`v(x) = \\sum_\\nu` ``bary_nu`` :math:`\\cdot v_{\\mathrm{vertex\\_ids}_\\nu}`.
+
+    Args:
+        mesh: The mesh the atlas was built from (same face order).
+        atlas: Its texture atlas.
+
+    Returns:
+        :class:`VertexWeights`, buffers :math:`(1, 3, H, W)` in the atlas's dtype (``vertex_ids`` int64).
+
+    Raises:
+        TypeError: wrong argument types.
+        ValueError: the atlas's faces do not belong to the mesh.
+
+    Examples:
+        >>> from torchsss.geometry import build_atlas, sphere
+        >>> mesh = sphere(5.0, 2)
+        >>> atlas = build_atlas(mesh, 64, kernel_size=3)
+        >>> vw = vertex_weights(mesh, atlas)
+        >>> e_g = torch.zeros(mesh.num_vertices).index_add_(0, vw.vertex_ids.flatten(), vw.dual.flatten())
+        >>> round(float((e_g * mesh.vertex_areas).sum() / mesh.area), 5)   # E = 1 integrates to the area
+        1.0
+    """
+    mesh = _check_mesh(mesh)
+    atlas = _check_atlas(atlas)
+    if atlas.face_uvs.shape[0] != mesh.num_faces:
+        raise ValueError(f"atlas: expected an atlas of this mesh ({mesh.num_faces} faces), "
+                         f"got one of {atlas.face_uvs.shape[0]} faces")
+    valid = atlas.valid_mask[0, 0]
+    chart = atlas.chart_mask[0, 0]
+    face = torch.where(valid, atlas.face_id[0, 0], torch.zeros_like(atlas.face_id[0, 0]))
+    faces = mesh.faces.to(face.device)
+    ids = faces[face].permute(2, 0, 1)  # (3, H, W)
+    ids = torch.where(valid, ids, torch.zeros_like(ids))
+    vertex_area = mesh.vertex_areas.detach().to(device=face.device, dtype=atlas.area.dtype)
+    big_a = 3.0 * vertex_area[ids]  # A_nu: sum of the adjacent face areas
+    bary = atlas.bary[0] * valid
+    area = atlas.area[0] * chart
+    dual = torch.where(chart & (big_a > 0), 3.0 / big_a.clamp_min(torch.finfo(big_a.dtype).tiny) * (4.0 * bary - 1.0)
+                       * area, torch.zeros_like(bary))
+    return VertexWeights(ids.unsqueeze(0), dual.unsqueeze(0), bary.unsqueeze(0))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# vertex-to-vertex throughput
+# --------------------------------------------------------------------------------------------------------------
+
+
+class Throughput(NamedTuple):
+    """Sparse pattern of the vertex throughput :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j|)` (row-major order).
+
+    Attributes:
+        rows: :math:`(nnz,)` int64 source vertex ``i``.
+        cols: :math:`(nnz,)` int64 receiver vertex ``j``.
+        distance: :math:`(nnz,)` mm :math:`|v_i - v_j|` (computed in float64, stored in the mesh's dtype).
+        source_area: :math:`(nnz,)` mm^2 :math:`A_i / 3` = ``mesh.vertex_areas[rows]``.
+        num_vertices: ``N``.
+        threshold: The threshold as given.
+        relative: Whether it was relative to :math:`\\max_{ij} F_{ij}`.
+        cutoff_mm: Largest kept distance (0 if nothing was kept).
+        build_seconds: Wall-clock time of the build.
+    """
+
+    rows: Tensor
+    cols: Tensor
+    distance: Tensor
+    source_area: Tensor
+    num_vertices: int
+    threshold: float
+    relative: bool
+    cutoff_mm: float
+    build_seconds: float
+
+
+def _max_rd(r: Tensor, sa: Tensor, ss: Tensor, eta: Tensor) -> Tensor:
+    """:math:`\\max_c R_d(r)` for ``r`` of any shape (float64)."""
+    return dipole_rd(r.unsqueeze(-1), sa, ss, eta).amax(-1)
+
+
+def _absolute_threshold(vertex_area64: Tensor, sa: Tensor, ss: Tensor, eta: Tensor, threshold: float,
+                        relative: bool) -> float:
+    """Absolute threshold on :math:`\\max_c F_{ij}`; the maximum of F is on the diagonal (R_d decreases in r)."""
+    if not relative:
+        return threshold
+    zero = torch.zeros((), dtype=torch.float64, device=vertex_area64.device)
+    f_max = float(vertex_area64.max()) * float(_max_rd(zero, sa, ss, eta))
+    return threshold * f_max
+
+
+def build_throughput(
+    mesh: Mesh,
+    sigma_a: Tensor | float,
+    sigma_s_prime: Tensor | float,
+    eta: Tensor | float = 1.3,
+    *,
+    threshold: float = 1e-5,
+    relative: bool = True,
+    zero_diagonal: bool = False,
+    block_rows: int | None = None,
+    max_memory_mb: float = 256.0,
+    progress: bool = False,
+) -> Throughput:
+    """Sparse vertex-to-vertex throughput pattern of Lensch §5.2 / §6.2.
+
+    :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j|)` (``i`` source, ``j`` receiver, :math:`B^g_j = \\sum_i E^g_i
+    F_{ij}`); an entry is kept when :math:`\\max_c F_{ij} \\ge` the threshold. The default is **relative**
+    (``threshold * max_ij max_c F_ij``, the maximum being :math:`\\max_i A_i/3 \\cdot \\max_c R_d(0)`): F is
+    dimensionless but its scale depends on the mesh's resolution (vertex areas) and on the material, so an
+    absolute 1e-5 (Lensch's value, for their meshes and units) keeps very different fractions of the matrix on
+    different meshes; the relative rule keeps the same dynamic range everywhere. ``relative=False`` applies the
+    threshold to F directly.
+
+    The pattern stores distances and source areas, not values: evaluate it with :func:`throughput_values` for
+    any (learnable) profile. Entries beyond ``cutoff_mm`` (the largest kept distance) were dropped for the
+    material given here, so a pattern reused with a wider profile misses that tail. Built blockwise over source
+    rows (never an ``N x N`` matrix when N is large), distances in float64.
+
+    Args:
+        mesh: Vertices in mm.
+        sigma_a: Absorption, mm^-1, scalar or :math:`(C,)`.
+        sigma_s_prime: Reduced scattering, mm^-1, scalar or :math:`(C,)`.
+        eta: Relative index of refraction.
+        threshold: Keep :math:`\\max_c F_{ij} \\ge` threshold (relative: in [0, 1], times max F).
+        relative: See above; default True.
+        zero_diagonal: Drop ``i == j`` (Lensch's :math:`F^0` for blending).
+        block_rows: Source rows per block; default from ``max_memory_mb``.
+        max_memory_mb: Memory budget of one block's temporaries.
+        progress: Show a tqdm bar over the blocks.
+
+    Returns:
+        :class:`Throughput` with entries sorted by (row, col).
+
+    Raises:
+        TypeError: wrong argument types.
+        ValueError: negative threshold, bad material or sizes.
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> tp = build_throughput(sphere(10.0, 2), [0.0021, 0.0041, 0.0071], [2.19, 2.62, 3.00])  # marble
+        >>> tp.num_vertices, tp.rows.shape == tp.distance.shape, tp.relative
+        (162, True, True)
+        >>> values = throughput_values(tp, lambda r: r.new_ones(r.shape[0], 3))   # any profile (nnz, 1) -> (nnz, C)
+        >>> tuple(values.shape) == (tp.rows.numel(), 3)
+        True
+    """
+    start = time.perf_counter()
+    mesh = _check_mesh(mesh)
+    threshold, relative = _check_threshold(threshold, relative)
+    zero_diagonal = _check_bool(zero_diagonal, "zero_diagonal")
+    progress = _check_bool(progress, "progress")
+    if isinstance(max_memory_mb, bool) or not isinstance(max_memory_mb, numbers.Real):
+        raise TypeError(f"max_memory_mb: expected a positive number, got {type(max_memory_mb).__name__}")
+    if not math.isfinite(float(max_memory_mb)) or max_memory_mb <= 0:
+        raise ValueError(f"max_memory_mb: expected a positive finite number, got {max_memory_mb!r}")
+    sa, ss, et = _material(mesh, sigma_a, sigma_s_prime, eta)
+    channels = int(torch.broadcast_shapes(sa.shape, ss.shape, et.shape, (1,))[-1])
+    n = mesh.num_vertices
+    if block_rows is None:
+        per_row = 8.0 * n * (8 + 2 * channels)  # bytes of the float64 temporaries of one row
+        block_rows = max(1, min(n, int(float(max_memory_mb) * 2**20 / per_row)))
+    elif isinstance(block_rows, bool) or not isinstance(block_rows, numbers.Integral):
+        raise TypeError(f"block_rows: expected a positive int or None, got {type(block_rows).__name__}")
+    elif block_rows < 1:
+        raise ValueError(f"block_rows: expected a positive int or None, got {block_rows}")
+    block_rows = int(block_rows)
+
+    v = mesh.vertices.detach().to(torch.float64)
+    va = mesh.vertex_areas.detach().to(torch.float64)
+    thr = _absolute_threshold(va, sa, ss, et, threshold, relative)
+    all_cols = torch.arange(n, device=v.device)
+    rows, cols, dists = [], [], []
+    starts = range(0, n, block_rows)
+    for lo in tqdm(starts, desc="throughput", unit="block", disable=not progress):
+        hi = min(n, lo + block_rows)
+        d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
+        f = va[lo:hi, None] * _max_rd(d, sa, ss, et)
+        keep = f >= thr
+        if zero_diagonal:
+            keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
+        r_idx, c_idx = keep.nonzero(as_tuple=True)
+        rows.append(r_idx + lo)
+        cols.append(c_idx)
+        dists.append(d[r_idx, c_idx])
+    rows_t = torch.cat(rows)
+    cols_t = torch.cat(cols)
+    dist_t = torch.cat(dists)
+    cutoff = float(dist_t.max()) if dist_t.numel() else 0.0
+    dtype = mesh.vertices.dtype
+    return Throughput(rows_t, cols_t, dist_t.to(dtype), mesh.vertex_areas.detach()[rows_t].to(dtype), n,
+                      threshold, relative, cutoff, time.perf_counter() - start)
+
+
+def throughput_values(tp: Throughput, profile: Callable[[Tensor], Tensor]) -> Tensor:
+    """Values :math:`F_{ij} = A_i/3\\, R(|v_i - v_j|)` of a throughput pattern for a profile.
+
+    Args:
+        tp: Pattern from :func:`build_throughput`.
+        profile: Maps distances :math:`(nnz, 1)` mm to :math:`(nnz, C)` mm^-2, e.g.
+            ``lambda r: dipole_rd(r, sigma_a, sigma_s_prime, eta)``.
+
+    Returns:
+        :math:`(nnz, C)`; :math:`B^g_j = \\sum_i E^g_i F_{ij}` is then ``index_add`` over ``tp.cols``.
+
+    Raises:
+        TypeError: ``tp`` is not a :class:`Throughput` or ``profile`` not callable.
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> from torchsss.physics import dipole_rd
+        >>> tp = build_throughput(sphere(10.0, 1), 0.01, 1.0)
+        >>> throughput_values(tp, lambda r: dipole_rd(r, torch.tensor([0.01]), 1.0)).shape[1]
+        1
+    """
+    if not isinstance(tp, Throughput):
+        raise TypeError(f"tp: expected a Throughput, got {type(tp).__name__}")
+    if not callable(profile):
+        raise TypeError(f"profile: expected a callable (nnz, 1) -> (nnz, C), got {type(profile).__name__}")
+    return tp.source_area[:, None] * profile(tp.distance[:, None])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# blending of the local and the global response
+# --------------------------------------------------------------------------------------------------------------
+
+
+class BlendWeights(NamedTuple):
+    """Lensch §5.4 blending: direct-radiosity weights and kernel corrections (see :func:`blending_weights`).
+
+    Attributes:
+        weights: :math:`(C, 3, H, W)` :math:`w_\\nu(u, v)`, the contribution per unit irradiance of texel
+            ``(u, v)`` to the direct radiosity :math:`B^d` of the three vertices ``vertex_ids`` of its face
+            (:math:`B^d_i = \\sum_{texels} w E`, scattered like the dual weights); 0 off chart texels.
+        kernel_correction: :math:`(C, H, W, k, k)` to add to the gather-form kernels ``area * R_d(distance)`` of
+            :func:`local_kernel_geometry`: minus the interpolated :math:`B^{g0} + B^d` response of the source
+            ``s = (y + i - k//2, x + j - k//2)`` at the receiver ``(y, x)``.
+    """
+
+    weights: Tensor
+    kernel_correction: Tensor
+
+
+def blending_weights(
+    mesh: Mesh,
+    atlas: Atlas,
+    sigma_a: Tensor | float,
+    sigma_s_prime: Tensor | float,
+    eta: Tensor | float = 1.3,
+    *,
+    kernel_size: int = 7,
+    threshold: float = 1e-5,
+    relative: bool = True,
+    chunk_texels: int = 1024,
+    progress: bool = False,
+) -> BlendWeights:
+    """Blend the local kernels with the global vertex response (Lensch §5.4), per chart texel, per channel.
+
+    The combined response is :math:`B = B^l + B^{g0} + B^d` (Lensch eq. 9) with :math:`F^0` the throughput of
+    :func:`build_throughput` with ``zero_diagonal=True`` and the same ``threshold``/``relative``. For a unit
+    impulse of irradiance at a chart texel ``o`` (scatter view): :math:`E^g_\\nu` = its dual weights,
+    :math:`B^{g0}_j = \\sum_\\nu E^g_\\nu F^0_{\\nu j}` (the 9 pairs source-face x receiver-face vertices are
+    evaluated directly from the vertex positions), interpolated at a receiver ``s`` with its barycentrics. The
+    weights minimise, on the ring :math:`\\Gamma` = valid texels on the border of the ``(k+2) x (k+2)`` window,
+
+    .. math::
+        \\sum_{s \\in \\Gamma} \\Big[A(o) R_d(|x_o - x_s|) - B^{g0}(x_s)
+        - \\sum_\\nu w_\\nu \\hat\\psi_\\nu(x_s)\\Big]^2,
+
+    :math:`\\hat\\psi_\\nu(x_s)` the barycentric of vertex :math:`\\nu` in the face of ``s`` (0 if it is not a
+    vertex of that face); a tiny ridge makes the 3 x 3 normal equations regular (``w = 0`` for a ring that sees
+    none of the three vertices). The kernel correction then subtracts the impulse's :math:`B^{g0} + B^d` inside
+    the ``k x k`` window, so that local + global reproduces :math:`A(o) R_d(|x_o - x_s|)` there exactly; far
+    from ``o`` the response is the global one without its diagonal.
+
+    Only chart texels are impulses here (gutter texels carry no dual weight, so they feed no global response;
+    their weights and corrections are 0). Computed in float64, chunked over texels.
+
+    Args:
+        mesh: The mesh of the atlas, mm.
+        atlas: Its texture atlas (``padding >= k//2 + 1`` so that the ring reads filled texels).
+        sigma_a: Absorption, mm^-1, scalar or :math:`(C,)`.
+        sigma_s_prime: Reduced scattering, mm^-1.
+        eta: Relative index of refraction.
+        kernel_size: Odd ``k`` of the local kernels.
+        threshold: Throughput threshold, as in :func:`build_throughput`.
+        relative: As in :func:`build_throughput`.
+        chunk_texels: Source texels per chunk (memory ~ 100 kB each).
+        progress: Show a tqdm bar over the chunks.
+
+    Returns:
+        :class:`BlendWeights`, in the atlas's dtype and device.
+
+    Raises:
+        TypeError: wrong argument types.
+        ValueError: bad kernel size, threshold, material or mismatched mesh and atlas.
+
+    Examples:
+        >>> from torchsss.geometry import build_atlas, sphere
+        >>> mesh = sphere(5.0, 1)
+        >>> atlas = build_atlas(mesh, 32, kernel_size=3)
+        >>> bw = blending_weights(mesh, atlas, [0.0021, 0.0041, 0.0071], [2.19, 2.62, 3.00], kernel_size=3)
+        >>> tuple(bw.weights.shape), tuple(bw.kernel_correction.shape)
+        ((3, 3, 32, 32), (3, 32, 32, 3, 3))
+    """
+    mesh = _check_mesh(mesh)
+    atlas = _check_atlas(atlas)
+    k = _check_kernel_size(kernel_size)
+    threshold, relative = _check_threshold(threshold, relative)
+    progress = _check_bool(progress, "progress")
+    if isinstance(chunk_texels, bool) or not isinstance(chunk_texels, numbers.Integral):
+        raise TypeError(f"chunk_texels: expected a positive int, got {type(chunk_texels).__name__}")
+    if chunk_texels < 1:
+        raise ValueError(f"chunk_texels: expected a positive int, got {chunk_texels}")
+    vw = vertex_weights(mesh, atlas)
+    sa, ss, et = _material(mesh, sigma_a, sigma_s_prime, eta)
+    device = atlas.position.device
+    sa, ss, et = sa.to(device), ss.to(device), et.to(device)
+    channels = int(torch.broadcast_shapes(sa.shape, ss.shape, et.shape, (1,))[-1])
+    f64 = torch.float64
+    v = mesh.vertices.detach().to(device=device, dtype=f64)
+    va = mesh.vertex_areas.detach().to(device=device, dtype=f64)
+    thr = _absolute_threshold(va, sa, ss, et, threshold, relative)
+
+    height, width = atlas.shape
+    r = k // 2
+    ring_r = r + 1
+    ids = vw.vertex_ids[0].permute(1, 2, 0).reshape(-1, 3)  # (HW, 3)
+    bary = vw.bary[0].permute(1, 2, 0).reshape(-1, 3).to(f64)
+    dual = vw.dual[0].permute(1, 2, 0).reshape(-1, 3).to(f64)
+    pos = atlas.position[0].permute(1, 2, 0).reshape(-1, 3).to(f64)
+    area = (atlas.area[0, 0] * atlas.valid_mask[0, 0]).reshape(-1).to(f64)
+    valid = atlas.valid_mask[0, 0].reshape(-1)
+    sources = atlas.chart_mask[0, 0].reshape(-1).nonzero(as_tuple=True)[0]
+
+    span = torch.arange(-ring_r, ring_r + 1, device=device)
+    dy, dx = torch.meshgrid(span, span, indexing="ij")
+    dy, dx = dy.reshape(-1), dx.reshape(-1)  # (P,), P = (k+2)^2
+    cheb = torch.maximum(dy.abs(), dx.abs())
+    on_ring = cheb == ring_r
+    inner = cheb <= r
+
+    weights = torch.zeros(height * width, 3, channels, dtype=f64, device=device)
+    scatter = torch.zeros(height * width, k * k, channels, dtype=f64, device=device)  # [o, (di, dj), c]
+    for lo in tqdm(range(0, sources.numel(), chunk_texels), desc="blending", unit="chunk", disable=not progress):
+        o = sources[lo:lo + chunk_texels]
+        oy, ox = o // width, o % width
+        ys, xs = oy[:, None] + dy, ox[:, None] + dx  # (M, P)
+        inside = (ys >= 0) & (ys < height) & (xs >= 0) & (xs < width)
+        s = torch.where(inside, ys * width + xs, torch.zeros_like(ys))
+        ok = inside & valid[s]
+        ids_o, ids_s = ids[o], ids[s]  # (M, 3), (M, P, 3)
+        bary_s = bary[s] * ok[..., None]
+        # F^0 between the 3 source-face vertices (nu) and the 3 receiver-face vertices (m), per channel
+        d_vv = _distance(v[ids_o][:, None, :, None, :], v[ids_s][:, :, None, :, :])  # (M, P, 3, 3)
+        rd = dipole_rd(d_vv.unsqueeze(-1), sa, ss, et)  # (M, P, 3, 3, C)
+        f0 = va[ids_o][:, None, :, None, None] * rd
+        keep = (f0.amax(-1) >= thr) & (ids_o[:, None, :, None] != ids_s[:, :, None, :])
+        f0 = f0 * keep[..., None]
+        b_g0 = torch.einsum("mn,mpnqc,mpq->mpc", dual[o], f0, bary_s)  # (M, P, C)
+        hat = torch.einsum("mpq,mpnq->mpn", bary_s, (ids_s[:, :, None, :] == ids_o[:, None, :, None]).to(f64))
+        target = area[o][:, None, None] * dipole_rd(_distance(pos[o][:, None, :], pos[s])[..., None], sa, ss, et)
+        ring = (ok & on_ring).to(f64)[..., None]
+        h_ring = hat * ring  # (M, P, 3)
+        gram = h_ring.transpose(1, 2) @ h_ring  # (M, 3, 3)
+        rhs = h_ring.transpose(1, 2) @ ((target - b_g0) * ring)  # (M, 3, C)
+        trace = gram.diagonal(dim1=1, dim2=2).sum(-1)
+        ridge = torch.where(trace > 0, _RIDGE * trace / 3.0, torch.ones_like(trace))
+        w = torch.linalg.solve(gram + ridge[:, None, None] * torch.eye(3, dtype=f64, device=device), rhs)
+        weights[o] = w
+        b_d = hat @ w  # (M, P, C)
+        scatter[o] = -((b_g0 + b_d) * ok[..., None])[:, inner]  # offsets (dy, dx) row-major over k x k
+
+    # gather form: correction[y, x, i, j] = scatter[source (y + i - r, x + j - r), offset (r - i, r - j)]
+    scatter_img = scatter.view(height, width, k, k, channels)
+    pad = torch.zeros(height + 2 * r, width + 2 * r, k, k, channels, dtype=f64, device=device)
+    pad[r:r + height, r:r + width] = scatter_img
+    correction = torch.zeros(height, width, k, k, channels, dtype=f64, device=device)
+    for i in range(k):
+        for j in range(k):
+            correction[:, :, i, j] = pad[i:i + height, j:j + width, k - 1 - i, k - 1 - j]
+    dtype = atlas.position.dtype
+    weights_img = weights.view(height, width, 3, channels).permute(3, 2, 0, 1).to(dtype).contiguous()
+    return BlendWeights(weights_img, correction.permute(4, 0, 1, 2, 3).to(dtype).contiguous())

@@ -1,0 +1,359 @@
+"""Lensch et al. 2002 as nn.Modules: irradiance atlas, local response, global response, their sum.
+
+Everything here works on atlas-space tensors :math:`(B, C, H, W)`; the precomputation (kernel geometry,
+vertex dual-basis weights, the sparse vertex-to-vertex throughput pattern) comes from
+:mod:`torchsss.geometry.lensch` and is stored as buffers. The material is a submodule: the kernels
+:math:`K = A_s R_d(|x_o - x_s|)` and the throughput values :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j|)` are
+re-evaluated from stored distances and areas in every ``forward()``, so material parameters receive gradients
+and can change per frame without a rebuild (the sparsity pattern, chosen at build time for the build
+material, stays).
+
+Heterogeneous materials (Shah eq. 7.4) enter on the source side: an irradiance modulation :math:`M_i`
+multiplies the irradiance atlas, a distance multiplier :math:`M_d` (atlas) scales the distances from each
+source texel (and, projected onto the vertices with the dual basis, from each source vertex), and a
+translucency mask removes non-translucent texels as sources and receivers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from torchsss._checks import check_shape, check_tensor
+from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights
+from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
+from torchsss.ops.sv_conv import sv_conv2d
+from torchsss.physics.dipole import dipole_cumulative
+from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+
+__all__ = ["GlobalResponse", "IrradianceAtlas", "LenschTranslucency", "LocalResponse"]
+
+
+def _disk_integral(material: nn.Module, area: Tensor, scale: Tensor | None = None) -> Tensor | None:
+    """:math:`\\int_{disk(A)} R_d(r M_d) dA` (mm^-2 x mm^2) for areas ``(...)`` -> ``(..., C)``; None without a dipole.
+
+    The self term of a texel or vertex: sampling :math:`A R_d(0)` overestimates it without bound once the
+    profile is narrower than the element (:math:`R_d(0) \\propto z_r^{-2}`), while the disk integral tends to
+    :math:`R_{total}`, which is what the element really sends to itself.
+    """
+    if not all(hasattr(material, a) for a in ("sigma_a", "sigma_s_prime", "eta")):
+        return None
+    radius = torch.sqrt(area / math.pi).unsqueeze(-1)
+    if scale is None:
+        return dipole_cumulative(radius, material.sigma_a, material.sigma_s_prime, material.eta)
+    md = scale.unsqueeze(-1)
+    return dipole_cumulative(radius * md, material.sigma_a, material.sigma_s_prime, material.eta) / (md * md)
+
+
+def _material_key(material: nn.Module) -> tuple | None:
+    """A key that changes whenever a parameter or buffer of ``material`` changes; None when caching is unsafe.
+
+    Cached kernels and throughput values are only reused outside autograd and tracing (relighting a fixed
+    material); whenever gradients are recorded the values are recomputed so that they flow to the material.
+    """
+    if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
+            torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+        return None
+    tensors = list(material.parameters()) + list(material.buffers())
+    return tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in tensors)
+
+
+class _Cache:
+    """One cached tensor per key (not a buffer: it never enters state_dict or an exported graph)."""
+
+    def __init__(self):
+        self.key: tuple | None = None
+        self.value: Tensor | None = None
+
+    def get(self, key: tuple | None, compute):
+        if key is None:
+            return compute()
+        if key != self.key or self.value is None:
+            self.value, self.key = compute(), key
+        return self.value
+
+
+def _window_gather(image: Tensor, k: int) -> Tensor:
+    """(1, 1, H, W) -> (H, W, k, k): the values at the sources of every receiver's window (0 outside)."""
+    h, w = image.shape[-2:]
+    cols = torch.nn.functional.unfold(image, k, padding=k // 2)  # (1, k*k, H*W)
+    return cols[0].transpose(0, 1).reshape(h, w, k, k)
+
+
+class IrradianceAtlas(nn.Module):
+    """Transmitted irradiance at every atlas texel from point or directional lights.
+
+    Lights come in as tensors so that ``forward()`` exports: ``light`` :math:`(B, 4)` homogeneous positions in
+    mm (w = 1: a point light at xyz; w = 0: a directional light, xyz the unit direction *towards* the light)
+    and ``intensity`` :math:`(B, C)` (radiant intensity of a point light, irradiance of a directional one).
+
+    .. math:: E = I \\max(0, n\\cdot\\omega) / d^2 \\; F_t(\\eta, n\\cdot\\omega) \\; V
+
+    Args:
+        position: :math:`(1, 3, H, W)` texel positions (mm).
+        normal: :math:`(1, 3, H, W)` unit texel normals.
+        valid: :math:`(1, 1, H, W)` bool, texels that carry surface (chart and filled gutter texels).
+        eta: relative index of refraction for the Fresnel transmittance.
+        fresnel: ``"exact"`` or ``"schlick"`` (Lensch uses Schlick).
+    """
+
+    def __init__(self, position: Tensor, normal: Tensor, valid: Tensor, eta: float = 1.3, fresnel: str = "exact"):
+        super().__init__()
+        check_tensor(position, "position")
+        dims = check_shape(position, "position", "1,3,H,W")
+        check_shape(normal, "normal", "1,3,H,W", **dims)
+        check_shape(valid, "valid", "1,1,H,W", **dims)
+        if fresnel not in ("exact", "schlick"):
+            raise ValueError(f"fresnel: expected 'exact' or 'schlick', got {fresnel!r}")
+        self.fresnel = fresnel
+        self.eta = float(eta)
+        self.register_buffer("position", position.detach().clone(), persistent=False)
+        self.register_buffer("normal", normal.detach().clone(), persistent=False)
+        self.register_buffer("valid", valid.to(position.dtype), persistent=False)
+
+    @classmethod
+    def from_atlas(cls, atlas, eta: float = 1.3, fresnel: str = "exact") -> IrradianceAtlas:
+        """Build from a :class:`~torchsss.geometry.atlas.Atlas`."""
+        return cls(atlas.position, atlas.normal, atlas.valid_mask, eta, fresnel)
+
+    def forward(self, light: Tensor, intensity: Tensor, visibility: Tensor | None = None) -> Tensor:
+        """Irradiance atlas :math:`(B, C, H, W)`; ``visibility`` optional :math:`(B, 1, H, W)` in [0, 1]."""
+        check_shape(light, "light", "B,4")
+        dims = check_shape(intensity, "intensity", "B,C", B=light.shape[0])
+        w = light[:, 3:4].view(-1, 1, 1, 1)
+        xyz = light[:, :3].view(-1, 3, 1, 1)
+        delta = xyz - w * self.position  # point: light - x; directional: the direction itself
+        d2 = (delta * delta).sum(1, keepdim=True)
+        safe = torch.where(d2 > 0, d2, torch.ones_like(d2))
+        to_light = delta / torch.sqrt(safe)
+        falloff = torch.where(w > 0, 1.0 / safe, torch.ones_like(safe)) * (d2 > 0)
+        cos = (to_light * self.normal).sum(1, keepdim=True).clamp_min(0.0)
+        ft = fresnel_transmittance(cos, self.eta) if self.fresnel == "exact" else schlick_transmittance(cos, self.eta)
+        e = intensity.view(dims["B"], dims["C"], 1, 1) * (falloff * cos * ft * self.valid)
+        if visibility is not None:
+            check_shape(visibility, "visibility", "B,1,H,W", B=dims["B"], H=e.shape[-2], W=e.shape[-1])
+            e = e * visibility
+        return e
+
+
+class LocalResponse(nn.Module):
+    """Local response :math:`B^l(o) = \\sum_s K_o(s) E(s)` with :math:`K_o(s) = A_s M_i R_d(|x_o - x_s| M_d)`.
+
+    Args:
+        geometry: :class:`~torchsss.geometry.lensch.LocalKernelGeometry` (distances and source areas).
+        material: a module mapping distances :math:`(\\ldots, 1)` mm to :math:`(\\ldots, C)` mm^-2 (e.g.
+            :class:`~torchsss.DipoleMaterial`); its parameters receive gradients.
+        correction: optional :math:`(C, H, W, k, k)` kernel correction added after evaluation (blending).
+        distance_scale: optional :math:`(1, 1, H, W)` distance multiplier atlas :math:`M_d` (> 0).
+        irradiance_scale: optional :math:`(1, C, H, W)` or :math:`(1, 1, H, W)` irradiance modulation :math:`M_i`.
+        mask: optional :math:`(1, 1, H, W)` translucency mask (1 translucent, 0 not).
+        self_term: ``"disk"`` (default) replaces the centre tap :math:`A_o R_d(0)` by the closed-form integral
+            of :math:`R_d` over a disk of the texel's area (needs a dipole material; finite and -> R_total when
+            the profile is far narrower than a texel); ``"point"`` keeps Lensch's point sample.
+    """
+
+    def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
+                 distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
+                 mask: Tensor | None = None, self_term: str = "disk"):
+        super().__init__()
+        dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k")
+        self.kernel_size = int(geometry.kernel_size)
+        self.material = material
+        dist = geometry.distance.detach().clone()
+        area = geometry.area.detach().clone()
+        if distance_scale is not None:
+            check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
+            dist = dist * _window_gather(distance_scale.to(dist.dtype), self.kernel_size)
+        if mask is not None:
+            check_shape(mask, "mask", "1,1,H,W", H=dims["H"], W=dims["W"])
+            m = mask.to(area.dtype)
+            area = area * _window_gather(m, self.kernel_size) * m[0, 0, :, :, None, None]
+        if self_term not in ("disk", "point"):
+            raise ValueError(f"self_term: expected 'disk' or 'point', got {self_term!r}")
+        self.self_term = self_term
+        c = self.kernel_size // 2
+        self_scale = None if distance_scale is None else distance_scale[0, 0].to(dist.dtype).clone()
+        self.register_buffer("distance", dist)
+        self.register_buffer("area", area)
+        self.register_buffer("self_scale", self_scale)
+        self.register_buffer("self_area", area[:, :, c, c].clone())
+        self.register_buffer("correction", None if correction is None else correction.detach().clone())
+        self._cache = _Cache()
+        if irradiance_scale is not None:
+            check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
+        self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
+
+    def kernels(self) -> Tensor:
+        """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``)."""
+        rd = self.material(self.distance.unsqueeze(-1))  # (H, W, k, k, C)
+        k = self.area.unsqueeze(-1) * rd
+        disk = _disk_integral(self.material, self.self_area, self.self_scale) if self.self_term == "disk" else None
+        if disk is not None:
+            c = self.kernel_size // 2
+            centre = torch.zeros_like(self.area)
+            centre[:, :, c, c] = 1.0
+            k = k + centre.unsqueeze(-1) * (disk - k[:, :, c, c]).unsqueeze(2).unsqueeze(2)
+        k = k.permute(4, 0, 1, 2, 3)
+        if self.correction is not None:
+            k = k + self.correction
+        return k
+
+    def forward(self, irradiance: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` local radiosity."""
+        e = irradiance if self.irradiance_scale is None else irradiance * self.irradiance_scale
+        key = _material_key(self.material)
+        k = self._cache.get(None if key is None else (*key, self.distance.device), self.kernels)
+        out = sv_conv2d(e.transpose(0, 1), k)  # channels as the kernel batch, the batch as channels
+        return out.transpose(0, 1)
+
+
+class GlobalResponse(nn.Module):
+    """Global response through the sparse vertex-to-vertex throughput (Lensch eq. 10-12).
+
+    :math:`E^g_i = \\sum_{texels} \\tilde\\psi_i A E`; :math:`B^g_j = \\sum_i E^g_i F_{ij}`;
+    :math:`B^g(x) = \\sum_\\nu \\beta_\\nu(x) B^g_\\nu`, with :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j| M_{d,i})`.
+
+    Args:
+        weights: :class:`~torchsss.geometry.lensch.VertexWeights` (vertex ids, dual weights, barycentrics).
+        throughput: :class:`~torchsss.geometry.lensch.Throughput` (pattern, distances, source areas).
+        material: the profile module (shared with the local response).
+        valid: :math:`(1, 1, H, W)` texels to reconstruct on.
+        distance_scale: optional :math:`(1, 1, H, W)` :math:`M_d` atlas, projected onto the source vertices.
+        method: ``"auto"``, ``"csr"`` or ``"scatter"`` (see :func:`torchsss.ops.sparse.sparse_apply_t`).
+    """
+
+    def __init__(self, weights: VertexWeights, throughput: Throughput, material: nn.Module, valid: Tensor, *,
+                 distance_scale: Tensor | None = None, method: str = "auto"):
+        super().__init__()
+        dims = check_shape(weights.vertex_ids, "weights.vertex_ids", "1,3,H,W")
+        check_shape(valid, "valid", "1,1,H,W", H=dims["H"], W=dims["W"])
+        self.material = material
+        self.method = method
+        self.num_vertices = int(throughput.num_vertices)
+        self.register_buffer("vertex_ids", weights.vertex_ids.reshape(1, 1, -1).clone(), persistent=False)
+        self.register_buffer("dual", weights.dual.reshape(1, 1, -1).clone(), persistent=False)
+        self.register_buffer("bary", weights.bary.clone(), persistent=False)
+        self.register_buffer("valid", valid.to(weights.bary.dtype), persistent=False)
+        dist = throughput.distance.clone()
+        if distance_scale is not None:
+            check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
+            num = torch.zeros(self.num_vertices, dtype=dist.dtype, device=dist.device)
+            den = torch.zeros_like(num)
+            flat = self.dual.reshape(3, -1)  # (3, H*W) after the reshape of (1, 3, H, W)
+            ids = weights.vertex_ids.reshape(3, -1)
+            md = distance_scale.reshape(1, -1).to(dist.dtype).expand_as(flat)
+            num.scatter_add_(0, ids.reshape(-1), (flat * md).reshape(-1))
+            den.scatter_add_(0, ids.reshape(-1), flat.reshape(-1))
+            vertex_md = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)),
+                                    torch.ones_like(den)).clamp_min(1e-6)
+            dist = dist * vertex_md[throughput.rows]
+        self.register_buffer("distance", dist)
+        self.register_buffer("source_area", throughput.source_area.clone())
+        self.register_buffer("diagonal", (throughput.rows == throughput.cols).to(dist.dtype), persistent=False)
+        pattern = sparse_pattern(throughput.rows, throughput.cols, self.num_vertices, self.num_vertices)
+        self.pattern = pattern
+        for name in ("rows", "cols", "t_crow", "t_col", "t_perm"):
+            self.register_buffer(f"_p_{name}", getattr(pattern, name), persistent=False)
+        self._cache = _Cache()
+
+    def _pattern(self):
+        return self.pattern._replace(rows=self._p_rows, cols=self._p_cols, t_crow=self._p_t_crow,
+                                     t_col=self._p_t_col, t_perm=self._p_t_perm)
+
+    def vertex_irradiance(self, irradiance: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` -> :math:`(B, N, C)` vertex irradiance :math:`E^g` (Lensch eq. 10), scatter_add."""
+        b, c = irradiance.shape[:2]
+        src = (irradiance.reshape(b, c, 1, -1) * self.dual.reshape(1, 1, 3, -1)).reshape(b, c, -1)
+        idx = self.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
+        out = torch.zeros(b, c, self.num_vertices, dtype=src.dtype, device=src.device)
+        return out.scatter_add(2, idx, src).transpose(1, 2)
+
+    def throughput_values(self) -> Tensor:
+        """:math:`(nnz, C)` values :math:`A_i/3\\, R_d(d_{ij})` from the current material.
+
+        Diagonal entries (present unless the throughput was built with ``zero_diagonal``) use the disk integral
+        of :math:`R_d` over the vertex area instead of :math:`A_i/3\\, R_d(0)` (see :class:`LocalResponse`).
+        """
+        vals = self.source_area.unsqueeze(-1) * self.material(self.distance.unsqueeze(-1))
+        disk = _disk_integral(self.material, self.source_area)
+        if disk is None:
+            return vals
+        d = self.diagonal.unsqueeze(-1)
+        return vals * (1.0 - d) + disk * d
+
+    def vertex_radiosity(self, irradiance: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, N, C)` vertex radiosity :math:`B^g`."""
+        eg = self.vertex_irradiance(irradiance)
+        key = _material_key(self.material)
+        values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
+        return sparse_apply_t(eg, self._pattern(), values, method=self.method)
+
+    def reconstruct(self, vertex_values: Tensor) -> Tensor:
+        """:math:`(B, N, C)` vertex values -> :math:`(B, C, H, W)` atlas by barycentric interpolation."""
+        b, _, c = vertex_values.shape
+        h, w = self.bary.shape[-2:]
+        idx = self.vertex_ids.reshape(1, -1, 1).expand(b, -1, c)
+        vals = torch.gather(vertex_values, 1, idx)  # (B, 3*H*W, C)
+        vals = vals.transpose(1, 2).reshape(b, c, 3, h, w)
+        return (vals * self.bary.unsqueeze(1)).sum(2) * self.valid
+
+    def forward(self, irradiance: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` global radiosity atlas."""
+        return self.reconstruct(self.vertex_radiosity(irradiance))
+
+
+class LenschTranslucency(nn.Module):
+    """The composed method: radiosity atlas :math:`B = B^l + B^d + B^{g0}` and, on request, the camera image.
+
+    With blending (``direct`` given) the throughput must have been built with a zero diagonal and the local
+    kernels carry the blending correction; without it the module returns :math:`B^l + B^g` as given (the
+    unblended variant, kept so that what blending buys is measurable).
+
+    Args:
+        local: :class:`LocalResponse`.
+        global_response: :class:`GlobalResponse` (shares ``local.material``).
+        direct: optional :math:`(C, 3, H, W)` blending weights :math:`w_\\nu` of Lensch §5.4.
+        albedo: optional :math:`(1, C, H, W)` surface texture :math:`T_\\rho` (Lensch eq. 13-14), > 0.
+        albedo_at_vertices: :math:`(N, C)` :math:`T_\\rho(v_i)`, required with ``albedo``.
+    """
+
+    def __init__(self, local: LocalResponse, global_response: GlobalResponse, *, direct: Tensor | None = None,
+                 albedo: Tensor | None = None, albedo_at_vertices: Tensor | None = None):
+        super().__init__()
+        self.local = local
+        self.global_response = global_response
+        self.register_buffer("direct", None if direct is None else direct.detach().clone())
+        if (albedo is None) != (albedo_at_vertices is None):
+            raise ValueError("albedo: expected both albedo and albedo_at_vertices or neither")
+        self.register_buffer("albedo", albedo)
+        self.register_buffer("albedo_at_vertices", albedo_at_vertices)
+
+    @property
+    def material(self) -> nn.Module:
+        """The shared material module."""
+        return self.local.material
+
+    def forward(self, irradiance: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` radiosity atlas."""
+        g = self.global_response
+        vert = g.vertex_radiosity(irradiance)
+        if self.direct is not None:
+            b, c = irradiance.shape[:2]
+            src = (irradiance.reshape(b, c, 1, -1) * self.direct.reshape(1, c, 3, -1)).reshape(b, c, -1)
+            idx = g.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
+            bd = torch.zeros(b, c, g.num_vertices, dtype=src.dtype, device=src.device).scatter_add(2, idx, src)
+            vert = vert + bd.transpose(1, 2)
+        if self.albedo is not None:
+            vert = vert / self.albedo_at_vertices.unsqueeze(0)
+            glob = g.reconstruct(vert) * self.albedo
+        else:
+            glob = g.reconstruct(vert)
+        return self.local(irradiance) + glob
+
+    @staticmethod
+    def radiance(radiosity: Tensor, cos_out: Tensor, eta: float | Tensor, fresnel: str = "exact") -> Tensor:
+        """:math:`L = F_t(\\eta, \\cos\\theta_o)/\\pi \\; B` for radiosity sampled at camera pixels."""
+        ft = fresnel_transmittance(cos_out, eta) if fresnel == "exact" else schlick_transmittance(cos_out, eta)
+        return ft / math.pi * radiosity
