@@ -1,0 +1,294 @@
+"""Lensch et al. 2002 renderer benchmark: accuracy against the reference, per-frame and precompute time, scaling.
+
+(a) ``sweep``: for each scene, the relative RMSE of the camera radiance against ``render_reference`` on the same
+    scene (``shadows="shadowmap"``, so both use the same visibility; the raytraced-shadow reference error is
+    recorded for the default knobs too), the precompute time (atlas, kernel geometry, vertex weights,
+    throughput, blending), the per-frame relighting time (``module(E)`` with the kernel/throughput cache warm,
+    median of a few calls) and the throughput nnz, one knob at a time: atlas resolution, kernel size,
+    throughput threshold, blending on/off, the local self term (disk integral vs Lensch's point sample).
+    Scenes: the default scene (spot, 40 mm, skin1, back-lit) at 96 x 96, and the Stanford bunny decimated to
+    ~10k faces at 30 mm in marble, back-lit, at 96 x 96. Relative RMSE =
+    ``sqrt(mean((L - L_ref)^2)) / sqrt(mean(L_ref^2))`` over the pixels (and channels) covered in both images.
+(b) ``scaling``: precompute time (``build_throughput``, ``local_kernel_geometry``) and memory (the bytes of the
+    built tensors and the growth of the peak RSS) for the bunny decimated to 10k/20k/40k/80k faces.
+
+Blending (Lensch §5.4) dominates the precompute and grows with the atlas size, so the knob sweeps other than
+``blend`` itself are run with blending off (see ``benchmarks/README.md``). Components (atlas, kernels,
+throughput, blending weights) are cached within a run; the recorded precompute time is the sum of the times
+its components took when first built.
+
+Usage::
+
+    python benchmarks/bench_lensch.py                      # full run (~15-20 min on 2 cores), results/lensch.*
+    python benchmarks/bench_lensch.py --quick --out-dir /tmp/b   # spot only, small sizes, < 60 s
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import math
+import resource
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from torchsss.bench import time_callable, write_results
+from torchsss.geometry.atlas import build_atlas
+from torchsss.geometry.lensch import blending_weights, build_throughput, local_kernel_geometry, vertex_weights
+from torchsss.geometry.lights import PointLight
+from torchsss.geometry.loading import load_mesh
+from torchsss.modules.lensch import GlobalResponse, LenschTranslucency, LocalResponse
+from torchsss.modules.material import DipoleMaterial
+from torchsss.pipelines.lensch import LenschScene, irradiance_atlas, render_lensch
+from torchsss.pipelines.reference import render_reference
+from torchsss.scene import Material, default_scene_path, load_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = ROOT / "benchmarks" / "results"
+BUNNY = ROOT.parent / "shared" / "data" / "meshes" / "stanford-bunny.obj"
+DEFAULTS = {"atlas": 512, "kernel": 7, "threshold": 1e-5, "blend": True, "self_term": "disk"}
+SWEEP_COLUMNS = ["scene", "sweep", "atlas", "kernel", "threshold", "blend", "self_term", "rel_rmse", "rel_rmse_rgb",
+                 "t_precompute_s", "t_blending_s", "t_frame_ms", "t_frame_iqr_ms", "t_irradiance_ms", "nnz"]
+SCALING_COLUMNS = ["faces", "vertices", "material", "threshold", "nnz", "cutoff_mm", "t_atlas_s", "t_kernels_s",
+                   "t_throughput_s", "throughput_mb", "kernels_mb", "rss_growth_mb"]
+
+
+def rel_rmse(image: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor) -> tuple[float, list[float]]:
+    """Relative RMSE of ``image`` against ``ref`` over ``mask`` (overall and per channel).
+
+    Args:
+        image: :math:`(1, 3, H, W)` radiance.
+        ref: :math:`(1, 3, H, W)` reference radiance.
+        mask: :math:`(1, 1, H, W)` bool, pixels covered in both.
+
+    Returns:
+        ``sqrt(mean((L - L_ref)^2)) / sqrt(mean(L_ref^2))`` over all channels, and the same per channel.
+    """
+    m = mask.expand_as(ref)
+    d, r = (image - ref)[m].double(), ref[m].double()
+    total = float((d.square().mean() / r.square().mean()).sqrt())
+    dc = (image - ref).double().masked_fill(~m, 0.0).square().sum((0, 2, 3))
+    rc = ref.double().masked_fill(~m, 0.0).square().sum((0, 2, 3))
+    return total, [float(v) for v in (dc / rc).sqrt()]
+
+
+class Builder:
+    """Builds Lensch modules for one mesh and material, caching every component between knob settings."""
+
+    def __init__(self, mesh, material: Material):
+        self.mesh, self.material = mesh, material
+        self.sa, self.ss, self.eta = material.tensors(dtype=mesh.vertices.dtype)
+        self.cache: dict = {}
+        self.times: dict = {}
+
+    def _get(self, key, fn):
+        if key not in self.cache:
+            t0 = time.perf_counter()
+            self.cache[key] = fn()
+            self.times[key] = time.perf_counter() - t0
+        return self.cache[key], self.times[key]
+
+    def build(self, atlas_res: int, k: int, threshold: float, blend: bool, self_term: str = "disk") -> LenschScene:
+        """A :class:`LenschScene` for these knobs; ``stats`` sums the first-build times of its components."""
+        atlas, t_a = self._get(("atlas", atlas_res, k), lambda: build_atlas(self.mesh, atlas_res, kernel_size=k))
+        geom, t_g = self._get(("geom", atlas_res, k), lambda: local_kernel_geometry(atlas, k))
+        weights, t_w = self._get(("weights", atlas_res, k), lambda: vertex_weights(self.mesh, atlas))
+        tp, t_t = self._get(("tp", threshold, blend), lambda: build_throughput(
+            self.mesh, self.sa, self.ss, self.eta, threshold=threshold, relative=True, zero_diagonal=blend))
+        direct = correction = None
+        t_b = 0.0
+        if blend:
+            bw, t_b = self._get(("blend", atlas_res, k, threshold), lambda: blending_weights(
+                self.mesh, atlas, self.sa, self.ss, self.eta, kernel_size=k, threshold=threshold, relative=True))
+            direct, correction = bw.weights, bw.kernel_correction
+        mat = DipoleMaterial(self.sa, self.ss, self.eta)
+        local = LocalResponse(geom, mat, correction=correction, self_term=self_term)
+        glob = GlobalResponse(weights, tp, mat, atlas.valid_mask)
+        module = LenschTranslucency(local, glob, direct=direct)
+        stats = {"t_precompute_s": t_a + t_g + t_w + t_t + t_b, "t_atlas_s": t_a, "t_kernels_s": t_g + t_w,
+                 "t_throughput_s": t_t, "t_blending_s": t_b if blend else None, "nnz": int(tp.rows.shape[0]),
+                 "cutoff_mm": tp.cutoff_mm}
+        return LenschScene(self.mesh, atlas, module, stats)
+
+    def irradiance(self, atlas_res: int, k: int, lights):
+        """The (cached) irradiance atlas of ``lights`` on the atlas of these knobs, and its first-build time."""
+        atlas = self.cache[("atlas", atlas_res, k)]
+        return self._get(("irr", atlas_res, k), lambda: irradiance_atlas(self.mesh, atlas, lights, self.material.eta))
+
+
+def run_scene(label, mesh, material, lights, camera, configs, *, spacing_mm=None, raytrace=True) -> list[dict]:
+    """Reference once, then one record per ``(sweep, knobs)`` configuration."""
+    t0 = time.perf_counter()
+    ref = render_reference(mesh, material, lights, camera, shadows="shadowmap", spacing_mm=spacing_mm)
+    print(f"[{label}] shadow-mapped reference {camera.width}x{camera.height}: {time.perf_counter() - t0:.1f} s "
+          f"(spacing {ref.stats.get('spacing_mm', float('nan')):.3f} mm)", flush=True)
+    ref_rt = None
+    if raytrace:
+        t0 = time.perf_counter()
+        ref_rt = render_reference(mesh, material, lights, camera, shadows="raytrace", spacing_mm=spacing_mm)
+        print(f"[{label}] raytraced reference: {time.perf_counter() - t0:.1f} s", flush=True)
+    builder = Builder(mesh, material)
+    records = []
+    for sweep, knobs in configs:
+        kn = {**DEFAULTS, **knobs}
+        built = builder.build(kn["atlas"], kn["kernel"], kn["threshold"], kn["blend"], kn["self_term"])
+        res = render_lensch(mesh, material, lights, camera, prebuilt=built)
+        mask = res.mask & ref.mask
+        err, err_rgb = rel_rmse(res.radiance, ref.radiance, mask)
+        e, t_irr = builder.irradiance(kn["atlas"], kn["kernel"], lights)
+        with torch.no_grad():
+            t = time_callable(functools.partial(built.module, e), repeats=3, warmup=1, min_time_s=0.0)
+        rec = {"benchmark": "sweep", "scene": label, "sweep": sweep, "atlas": kn["atlas"], "kernel": kn["kernel"],
+               "threshold": kn["threshold"], "blend": kn["blend"], "self_term": kn["self_term"],
+               "rel_rmse": err, "rel_rmse_rgb": err_rgb, "pixels": int(mask.sum()),
+               "t_frame_ms": 1e3 * t["median_s"], "t_frame_iqr_ms": 1e3 * t["iqr_s"],
+               "t_irradiance_ms": 1e3 * t_irr, "t_first_frame_s": res.stats["t_frame_s"], **built.stats}
+        if ref_rt is not None and sweep == "default":
+            rec["rel_rmse_vs_raytrace"], _ = rel_rmse(res.radiance, ref_rt.radiance, res.mask & ref_rt.mask)
+            rec["shadowmap_ref_vs_raytrace_ref"], _ = rel_rmse(ref.radiance, ref_rt.radiance, ref.mask & ref_rt.mask)
+        records.append(rec)
+        extra = (f"  vs raytrace ref {rec['rel_rmse_vs_raytrace']:.4f} (shadow-map ref vs raytrace ref "
+                 f"{rec['shadowmap_ref_vs_raytrace_ref']:.4f})") if "rel_rmse_vs_raytrace" in rec else ""
+        print(f"[{label}] {sweep:9s} atlas {kn['atlas']:4d} k {kn['kernel']:2d} thr {kn['threshold']:.0e} "
+              f"blend {int(kn['blend'])} {kn['self_term']:5s}: rel RMSE {err:.4f}  precompute "
+              f"{rec['t_precompute_s']:.1f} s  frame {rec['t_frame_ms']:.0f} ms  nnz {rec['nnz']}{extra}", flush=True)
+    return records
+
+
+def scaling(path: Path, face_counts, material: Material, threshold: float, atlas_res: int, k: int,
+            max_nnz: float) -> list[dict]:
+    """Precompute time and memory against the vertex count (bunny decimated to ``face_counts``)."""
+    records = []
+    prev = None
+    for faces in face_counts:
+        mesh = load_mesh(path, 30.0, decimate_to=faces, warn_open=False)
+        n = mesh.num_vertices
+        if prev is not None and prev[1] * (n / prev[0]) ** 2 > max_nnz:
+            est = prev[1] * (n / prev[0]) ** 2
+            print(f"scaling: {faces} faces / {n} vertices skipped (estimated nnz {est:.3g} > {max_nnz:.3g})",
+                  flush=True)
+            records.append({"benchmark": "scaling", "faces": mesh.num_faces, "vertices": n,
+                            "material": material.name, "threshold": threshold, "skipped": f"nnz est. {est:.3g}"})
+            continue
+        sa, ss, eta = material.tensors(dtype=mesh.vertices.dtype)
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        t0 = time.perf_counter()
+        atlas = build_atlas(mesh, atlas_res, kernel_size=k)
+        t1 = time.perf_counter()
+        geom = local_kernel_geometry(atlas, k)
+        weights = vertex_weights(mesh, atlas)
+        t2 = time.perf_counter()
+        tp = build_throughput(mesh, sa, ss, eta, threshold=threshold, relative=True)
+        t3 = time.perf_counter()
+        rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        tp_bytes = sum(t.numel() * t.element_size() for t in (tp.rows, tp.cols, tp.distance, tp.source_area))
+        k_bytes = sum(t.numel() * t.element_size() for t in (geom.distance, geom.area))
+        w_bytes = sum(t.numel() * t.element_size() for t in weights if isinstance(t, torch.Tensor))
+        nnz = int(tp.rows.shape[0])
+        rec = {"benchmark": "scaling", "faces": mesh.num_faces, "vertices": n, "material": material.name,
+               "threshold": threshold, "atlas": atlas_res, "kernel": k, "nnz": nnz, "cutoff_mm": tp.cutoff_mm,
+               "t_atlas_s": t1 - t0, "t_kernels_s": t2 - t1, "t_throughput_s": t3 - t2,
+               "throughput_mb": tp_bytes / 2**20, "kernels_mb": (k_bytes + w_bytes) / 2**20,
+               "rss_growth_mb": (rss1 - rss0) / 1024}
+        records.append(rec)
+        prev = (n, nnz)
+        print(f"scaling: {rec['faces']} faces / {n} vertices: nnz {nnz} (cutoff {tp.cutoff_mm:.1f} mm)  atlas "
+              f"{rec['t_atlas_s']:.1f} s  kernels {rec['t_kernels_s']:.1f} s  "
+              f"throughput {rec['t_throughput_s']:.1f} s  "
+              f"{rec['throughput_mb']:.0f} + {rec['kernels_mb']:.0f} MB  peak RSS +{rec['rss_growth_mb']:.0f} MB",
+              flush=True)
+        del atlas, geom, weights, tp
+    return records
+
+
+def bunny_scene(width: int):
+    """The bunny scene file's lights and camera, scaled from its 50 mm to 30 mm; the mesh decimated to 10k faces."""
+    scene = load_scene(ROOT / "examples" / "scenes" / "bunny.json")
+    f = 30.0 / float(scene.size_mm)
+    lights = [PointLight(tuple(f * p for p in light.position), tuple(f * f * i for i in light.intensity))
+              for light in scene.lights]
+    cam = dataclasses.replace(scene.camera, eye=tuple(f * e for e in scene.camera.eye), width=width, height=width)
+    mesh = load_mesh(BUNNY, 30.0, decimate_to=10000, warn_open=False)
+    return mesh, scene.material, lights, cam
+
+
+def _finite(records) -> bool:
+    return all(math.isfinite(r["rel_rmse"]) for r in records if r["benchmark"] == "sweep")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="spot only, atlas 256, 48x48, blend off, thresholds 1e-2/1e-3, 2 mm reference spacing")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out-dir", type=Path, default=RESULTS_DIR)
+    ap.add_argument("--skip-scaling", action="store_true")
+    ap.add_argument("--skip-bunny", action="store_true")
+    args = ap.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    name = "lensch_quick" if args.quick else "lensch"
+    columns = {"sweep": SWEEP_COLUMNS, "scaling": SCALING_COLUMNS}
+    records: list[dict] = []
+
+    def save():
+        write_results(name, records, args.out_dir, columns=columns)
+
+    spot = load_scene(default_scene_path())
+    if args.quick:
+        cam = dataclasses.replace(spot.camera, width=48, height=48)
+        base = {"atlas": 256, "blend": False}
+        configs = [("threshold", {**base, "threshold": 1e-2}), ("threshold", {**base, "threshold": 1e-3})]
+        records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, configs, spacing_mm=2.0,
+                             raytrace=False)
+        save()
+        print(f"wrote {args.out_dir / name}.json/.md", flush=True)
+        return 0 if _finite(records) else 1
+
+    if not args.skip_scaling and BUNNY.is_file():
+        records += scaling(BUNNY, [10000, 20000, 40000, 80000], Material.from_json("skin1"), 1e-3, 512, 7,
+                           max_nnz=4e7)
+        save()
+    # knob sweeps with blending off (blending at atlas 1024 or per kernel size would take many minutes)
+    nb = {"blend": False}
+    spot_configs = [
+        ("default", {}),
+        ("blend", nb),
+        ("blend", {"atlas": 256}),
+        ("blend", {"atlas": 256, "blend": False}),
+        ("atlas", {**nb, "atlas": 1024}),
+        ("kernel", {**nb, "kernel": 5}),
+        ("kernel", {**nb, "kernel": 9}),
+        ("kernel", {**nb, "kernel": 11}),
+        ("threshold", {**nb, "threshold": 1e-3}),
+        ("threshold", {**nb, "threshold": 1e-4}),
+        ("threshold", {**nb, "threshold": 1e-6}),
+        ("threshold", {**nb, "threshold": 1e-7}),
+        ("self_term", {**nb, "self_term": "point"}),
+    ]
+    cam = dataclasses.replace(spot.camera, width=96, height=96)
+    records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, spot_configs)
+    save()
+    if not args.skip_bunny and BUNNY.is_file():
+        mesh, material, lights, cam = bunny_scene(96)
+        bunny_configs = [
+            ("blend", {"atlas": 256, "blend": False}),
+            ("blend", nb),
+            ("kernel", {**nb, "kernel": 11}),
+            ("threshold", {**nb, "threshold": 1e-3}),
+            ("self_term", {**nb, "self_term": "point"}),
+            ("blend", {"atlas": 256}),
+            ("default", {}),
+        ]
+        records += run_scene("bunny", mesh, material, lights, cam, bunny_configs)
+        save()
+    print(f"wrote {args.out_dir / name}.json/.md", flush=True)
+    return 0 if _finite(records) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,36 @@
+"""Smoke run of benchmarks/bench_lensch.py --quick: it finishes and writes records with finite errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH_LENSCH = ROOT / "benchmarks" / "bench_lensch.py"
+
+
+def test_bench_lensch_quick_smoke(tmp_path):
+    out = tmp_path / "results"
+    proc = subprocess.run(
+        [sys.executable, str(BENCH_LENSCH), "--quick", "--out-dir", str(out)],
+        capture_output=True, text=True, timeout=180, cwd=tmp_path,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    data = json.loads((out / "lensch_quick.json").read_text(encoding="utf-8"))
+    assert (out / "lensch_quick.md").is_file()
+    sweep = [r for r in data["records"] if r["benchmark"] == "sweep"]
+    assert len(sweep) == 2
+    assert {r["threshold"] for r in sweep} == {1e-2, 1e-3}
+    for r in sweep:
+        assert r["scene"] == "spot" and r["atlas"] == 256 and r["pixels"] > 0
+        for key in ("rel_rmse", "t_precompute_s", "t_frame_ms"):
+            assert isinstance(r[key], float) and math.isfinite(r[key]) and r[key] >= 0, (key, r)
+        assert len(r["rel_rmse_rgb"]) == 3 and all(math.isfinite(v) for v in r["rel_rmse_rgb"])
+        assert r["rel_rmse"] < 1.0  # the image is the object, not noise
+        assert r["nnz"] > 0
+    # a lower threshold keeps more throughput entries
+    by_thr = {r["threshold"]: r for r in sweep}
+    assert by_thr[1e-3]["nnz"] > by_thr[1e-2]["nnz"]
