@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import json
 import math
 import resource
 import sys
@@ -228,6 +229,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out-dir", type=Path, default=RESULTS_DIR)
     ap.add_argument("--skip-scaling", action="store_true")
     ap.add_argument("--skip-bunny", action="store_true")
+    ap.add_argument("--sweeps", default=None,
+                    help="comma-separated sweep names to run (default: all), e.g. blend_kernel")
+    ap.add_argument("--append", action="store_true",
+                    help="merge into the existing results file (a re-measured configuration replaces the old record)")
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -235,8 +240,20 @@ def main(argv=None) -> int:
     columns = {"sweep": SWEEP_COLUMNS, "scaling": SCALING_COLUMNS}
     records: list[dict] = []
 
+    key_fields = ("benchmark", "scene", "sweep", "atlas", "kernel", "threshold", "blend", "self_term", "faces")
+    previous: list[dict] = []
+    if args.append and (args.out_dir / f"{name}.json").is_file():
+        previous = json.loads((args.out_dir / f"{name}.json").read_text())["records"]
+
     def save():
-        write_results(name, records, args.out_dir, columns=columns)
+        fresh = {tuple(r.get(k) for k in key_fields) for r in records}
+        kept = [r for r in previous if tuple(r.get(k) for k in key_fields) not in fresh]
+        write_results(name, kept + records, args.out_dir, columns=columns)
+
+    wanted = None if args.sweeps is None else set(args.sweeps.split(","))
+
+    def pick(configs):
+        return [c for c in configs if wanted is None or c[0] in wanted]
 
     spot = load_scene(default_scene_path())
     if args.quick:
@@ -249,7 +266,7 @@ def main(argv=None) -> int:
         print(f"wrote {args.out_dir / name}.json/.md", flush=True)
         return 0 if _finite(records) else 1
 
-    if not args.skip_scaling and BUNNY.is_file():
+    if not args.skip_scaling and BUNNY.is_file() and wanted is None:
         records += scaling(BUNNY, [10000, 20000, 40000, 80000], Material.from_json("skin1"), 1e-3, 512, 7,
                            max_nnz=4e7)
         save()
@@ -269,9 +286,13 @@ def main(argv=None) -> int:
         ("threshold", {**nb, "threshold": 1e-6}),
         ("threshold", {**nb, "threshold": 1e-7}),
         ("self_term", {**nb, "self_term": "point"}),
+        # blending with larger windows: the window must reach past the vertex spacing
+        ("blend_kernel", {"kernel": 9}),
+        ("blend_kernel", {"kernel": 11}),
+        ("blend_kernel", {"atlas": 256, "kernel": 9}),
     ]
     cam = dataclasses.replace(spot.camera, width=96, height=96)
-    records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, spot_configs)
+    records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, pick(spot_configs))
     save()
     if not args.skip_bunny and BUNNY.is_file():
         mesh, material, lights, cam = bunny_scene(96)
@@ -283,8 +304,11 @@ def main(argv=None) -> int:
             ("self_term", {**nb, "self_term": "point"}),
             ("blend", {"atlas": 256}),
             ("default", {}),
+            ("blend_kernel", {"kernel": 9}),
+            ("blend_kernel", {"kernel": 11}),
+            ("blend_kernel", {"atlas": 256, "kernel": 9}),
         ]
-        records += run_scene("bunny", mesh, material, lights, cam, bunny_configs)
+        records += run_scene("bunny", mesh, material, lights, cam, pick(bunny_configs))
         save()
     print(f"wrote {args.out_dir / name}.json/.md", flush=True)
     return 0 if _finite(records) else 1
