@@ -136,7 +136,8 @@ def test_heterogeneous_painted_region(small):
     idx = cand[len(cand) // 2]
     e = torch.zeros(1, 3, 64, 64, dtype=torch.float64)
     e[0, :, idx[0], idx[1]] = 1.0
-    b0, b1, b2 = base(e), blur(e), bright(e)
+    with torch.no_grad():
+        b0, b1, b2 = base(e), blur(e), bright(e)
     r = (atlas.position - atlas.position[:, :, idx[0], idx[1]].view(1, 3, 1, 1)).norm(dim=1, keepdim=True)
     spread = lambda b: float((b[:, 0:1] * r**2).sum() / b[:, 0:1].sum())  # noqa: E731
     assert spread(b1) > spread(b0) * 1.2, "M_d < 1 must spread the light farther"

@@ -16,7 +16,7 @@ why). Two rules follow from how it works:
 
 Examples:
     >>> sorted(EXPORTABLE)
-    ['material', 'profile']
+    ['lensch', 'material', 'profile']
     >>> case = export_case("profile")
     >>> tuple(case.example_args[0].shape), tuple(case.test_args[0].shape)
     ((4, 48, 1), (3, 101, 1))
