@@ -69,7 +69,7 @@ import xatlas
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.geometry.raster import interpolate, rasterize_uv
 
 __all__ = ["Atlas", "build_atlas", "parameterize"]
@@ -231,14 +231,6 @@ def _check_padding(padding: object, minimum: int, resolution: int) -> int:
         raise ValueError(f"padding: expected an int in [{minimum}, {maximum}] (at least kernel_size // 2 + 1 so "
                          f"that kernels never read past the gutter), got {padding}")
     return padding
-
-
-def _check_mesh(mesh: object) -> Mesh:
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"mesh: expected a torchsss.geometry.Mesh, got {type(mesh).__name__}")
-    if mesh.num_faces == 0:
-        raise ValueError("mesh: expected at least one face, got 0")
-    return mesh
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -446,7 +438,7 @@ def parameterize(mesh: Mesh, resolution: int, padding: int) -> Tensor:
         >>> tuple(uv.shape), bool((uv >= 0).all() and (uv <= 1).all())
         ((320, 3, 2), True)
     """
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     resolution = _check_resolution(resolution)
     padding = _check_padding(padding, 1, resolution)
     face_uvs, _ = _xatlas_charts(mesh, resolution, padding)
@@ -581,7 +573,7 @@ def build_atlas(
         >>> round(integral.item() / (atlas.area * atlas.chart_mask).sum().item(), 2)
         1.0
     """
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     resolution = _check_resolution(resolution)
     kernel_size = _check_int(kernel_size, "kernel_size")
     if kernel_size < 1 or kernel_size % 2 == 0:

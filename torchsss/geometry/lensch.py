@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 
 from torchsss._checks import as_float_tensor
 from torchsss.geometry.atlas import Atlas
-from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.physics.dipole import dipole_rd
 
 __all__ = [
@@ -62,14 +62,6 @@ def _check_atlas(atlas: object) -> Atlas:
     if not isinstance(atlas, Atlas):
         raise TypeError(f"atlas: expected a torchsss.geometry.Atlas, got {type(atlas).__name__}")
     return atlas
-
-
-def _check_mesh(mesh: object) -> Mesh:
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"mesh: expected a torchsss.geometry.Mesh, got {type(mesh).__name__}")
-    if mesh.num_faces == 0:
-        raise ValueError("mesh: expected at least one face, got 0")
-    return mesh
 
 
 def _check_kernel_size(kernel_size: object) -> int:
@@ -243,7 +235,7 @@ def vertex_weights(mesh: Mesh, atlas: Atlas) -> VertexWeights:
         >>> round(float((e_g * mesh.vertex_areas).sum() / mesh.area), 5)   # E = 1 integrates to the area
         1.0
     """
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     atlas = _check_atlas(atlas)
     if atlas.face_uvs.shape[0] != mesh.num_faces:
         raise ValueError(f"atlas: expected an atlas of this mesh ({mesh.num_faces} faces), "
@@ -366,7 +358,7 @@ def build_throughput(
         True
     """
     start = time.perf_counter()
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     threshold, relative = _check_threshold(threshold, relative)
     zero_diagonal = _check_bool(zero_diagonal, "zero_diagonal")
     progress = _check_bool(progress, "progress")
@@ -523,7 +515,7 @@ def blending_weights(
         >>> tuple(bw.weights.shape), tuple(bw.kernel_correction.shape)
         ((3, 3, 32, 32), (3, 32, 32, 3, 3))
     """
-    mesh = _check_mesh(mesh)
+    mesh = check_mesh(mesh)
     atlas = _check_atlas(atlas)
     k = _check_kernel_size(kernel_size)
     threshold, relative = _check_threshold(threshold, relative)

@@ -29,6 +29,7 @@ from torchsss._checks import check_shape
 __all__ = [
     "Mesh",
     "MeshWarning",
+    "check_mesh",
     "decimate",
     "mesh_from_arrays",
     "normalize_to_size",
@@ -486,6 +487,15 @@ def _build(
     out_v = v.to(dtype)[index]
     out_f = torch.from_numpy(np.ascontiguousarray(f64, dtype=np.int64)).to(device)
     return Mesh(out_v, out_f, uv, mm_per_unit=mm_per_unit, name=name)
+
+
+def check_mesh(mesh: object, name: str = "mesh") -> Mesh:
+    """Return ``mesh`` if it is a :class:`Mesh` with at least one face, else raise TypeError / ValueError."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"{name}: expected a torchsss.geometry.Mesh, got {type(mesh).__name__}")
+    if mesh.num_faces == 0:
+        raise ValueError(f"{name}: expected at least one face, got 0")
+    return mesh
 
 
 def mesh_from_arrays(
