@@ -16,7 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from torchsss.bench import compare, time_callable, write_results
+from torchsss.bench import benchmark_parser, compare, setup_benchmark, time_callable, write_results
 from torchsss.ops import sparse_apply_t, sparse_pattern, sv_conv2d, sv_conv2d_reference
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -160,19 +159,10 @@ def bench_sparse(n: int, nnz_target: int, timing: dict, log=print) -> list[dict]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
-    parser.add_argument("--out-dir", type=Path, default=RESULTS_DIR, help=f"output folder (default {RESULTS_DIR})")
-    parser.add_argument("--name", default="lensch_ops", help="file stem of the results (default 'lensch_ops')")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: stable on a shared machine; 0 = torch default)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random images and kernels")
+    parser = benchmark_parser(__doc__.split("\n\n")[0], "lensch_ops", RESULTS_DIR,
+                              seed_help="seed of the random images and kernels")
     args = parser.parse_args(argv)
-    if args.threads < 0:
-        parser.error(f"--threads: expected an int >= 0, got {args.threads}")
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
+    setup_benchmark(parser, args)
     cfg = QUICK if args.quick else FULL
 
     start = time.perf_counter()

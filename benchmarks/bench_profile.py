@@ -16,7 +16,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import functools
 import itertools
 import math
@@ -26,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from torchsss.bench import compare, time_callable, write_results
+from torchsss.bench import benchmark_parser, compare, setup_benchmark, time_callable, write_results
 from torchsss.ops import reference_radiosity
 from torchsss.physics import (
     build_profile_table,
@@ -164,19 +163,10 @@ def bench_reference(sizes, timing: dict, log=print) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
-    parser.add_argument("--out-dir", type=Path, default=RESULTS_DIR, help=f"output folder (default {RESULTS_DIR})")
-    parser.add_argument("--name", default="profile", help="file stem of the results (default 'profile')")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: stable on a shared machine; 0 = torch default)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random distances and points")
+    parser = benchmark_parser(__doc__.split("\n\n")[0], "profile", RESULTS_DIR,
+                              seed_help="seed of the random distances and points")
     args = parser.parse_args(argv)
-    if args.threads < 0:
-        parser.error(f"--threads: expected an int >= 0, got {args.threads}")
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
+    setup_benchmark(parser, args)
     cfg = QUICK if args.quick else FULL
 
     start = time.perf_counter()

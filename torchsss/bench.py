@@ -17,6 +17,7 @@ Timings are wall-clock (:func:`time.perf_counter`); the garbage collector is pau
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import gc
 import json
@@ -32,7 +33,16 @@ from typing import Any
 
 import torch
 
-__all__ = ["compare", "environment", "format_value", "markdown_table", "time_callable", "write_results"]
+__all__ = [
+    "benchmark_parser",
+    "compare",
+    "environment",
+    "format_value",
+    "markdown_table",
+    "setup_benchmark",
+    "time_callable",
+    "write_results",
+]
 
 _TIMING_KEYS = ("repeats", "warmup", "min_time_s")
 _COMPARE_KEYS = ("name", "candidate_median_s", "baseline_median_s", "speedup", "candidate_iqr_s", "baseline_iqr_s",
@@ -432,3 +442,28 @@ def write_results(
     parts += [f"Environment: {env_text}.", ""]
     md_path.write_text("\n".join(parts), encoding="utf-8")
     return json_path, md_path
+
+
+def benchmark_parser(description: str, name: str, results_dir: Path, *, seed_help: str = "seed of the random inputs"):
+    """The command line every benchmark script shares: --quick, --out-dir, --name, --threads, --seed.
+
+    Scripts add their own options to the returned :class:`argparse.ArgumentParser`, then call
+    :func:`setup_benchmark` on the parsed arguments.
+    """
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--quick", action="store_true", help="small sizes for a smoke run")
+    parser.add_argument("--out-dir", type=Path, default=results_dir, help=f"output folder (default {results_dir})")
+    parser.add_argument("--name", default=name, help=f"file stem of the results (default {name!r})")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: stable on a shared machine; 0 = torch default)")
+    parser.add_argument("--seed", type=int, default=0, help=seed_help)
+    return parser
+
+
+def setup_benchmark(parser, args) -> None:
+    """Validate ``--threads``, set torch's thread count and seed (for parsers from :func:`benchmark_parser`)."""
+    if args.threads < 0:
+        parser.error(f"--threads: expected an int >= 0, got {args.threads}")
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
