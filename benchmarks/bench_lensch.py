@@ -307,6 +307,7 @@ def main(argv=None) -> int:
             ("blend_kernel", {"kernel": 9}),
             ("blend_kernel", {"kernel": 11}),
             ("blend_kernel", {"atlas": 256, "kernel": 9}),
+            ("atlas", {**nb, "atlas": 1024}),
         ]
         records += run_scene("bunny", mesh, material, lights, cam, pick(bunny_configs))
         save()
