@@ -190,12 +190,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--threshold", type=float, default=1e-5,
                        help="lensch: throughput threshold relative to the largest entry")
     p_ren.add_argument("--no-blend", action="store_true", help="lensch: skip the local/global blending of §5.4")
+    p_ren.add_argument("--specular", action="store_true",
+                       help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
+    p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")
     p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
     args = parser.parse_args(argv)
     if args.command == "render":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")
         options = {"progress": not args.no_progress}
+        if args.specular:
+            options.update(specular=True, roughness=args.roughness)
         if args.method == "reference":
             options.update(eps=args.eps, shadows=args.shadows)
             if args.spacing is not None:

@@ -32,6 +32,7 @@ from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.modules.lensch import GlobalResponse, LenschTranslucency, LocalResponse
 from torchsss.modules.material import DipoleMaterial
 from torchsss.pipelines.reference import RenderResult
+from torchsss.pipelines.specular import specular_radiance
 from torchsss.scene import Material
 
 __all__ = ["LenschScene", "build_lensch", "irradiance_atlas", "render_lensch"]
@@ -101,8 +102,12 @@ def _camera_uv(mesh: Mesh, atlas: Atlas, camera: Camera) -> tuple[Tensor, Tensor
 def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *,
                   resolution: int = 512, kernel_size: int = 7, threshold: float = 1e-5, relative: bool = True,
                   blend: bool = True, dtype: torch.dtype = torch.float32, progress: bool = False,
-                  prebuilt: LenschScene | None = None) -> RenderResult:
-    """Render a camera image with the Lensch method; ``stats`` separates precompute and per-frame time."""
+                  prebuilt: LenschScene | None = None, specular: bool = False,
+                  roughness: float = 0.3) -> RenderResult:
+    """Render a camera image with the Lensch method; ``stats`` separates precompute and per-frame time.
+
+    ``specular`` adds the opt-in GGX boundary reflection (shadow-mapped), as in the reference renderer.
+    """
     mesh = mesh.with_dtype(dtype)
     built = prebuilt or build_lensch(mesh, material, resolution=resolution, kernel_size=kernel_size,
                                      threshold=threshold, relative=relative, blend=blend, progress=progress)
@@ -117,6 +122,11 @@ def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camer
     b = built.atlas.sample(b_atlas, uv) * mask
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     radiance = LenschTranslucency.radiance(b, cos_o, material.eta) * mask
+    if specular:
+        pix = gbuf.position.flatten(2).transpose(1, 2)
+        pix_n = gbuf.normal.flatten(2).transpose(1, 2)
+        vis = [shadow_visibility(build_shadow_map(mesh, light, 1024), pix, pix_n, light) for light in lights]
+        radiance = radiance + specular_radiance(gbuf, lights, material.eta, roughness=roughness, visibility=vis)
     t3 = time.perf_counter()
     stats = dict(built.stats)
     stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=t3 - t2, t_frame_s=t3 - t0,

@@ -39,6 +39,7 @@ from torchsss.ops.reference import reference_radiosity
 from torchsss.physics.budget import splat_spacing
 from torchsss.physics.dipole import dipole_rd
 from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.pipelines.specular import specular_radiance
 from torchsss.scene import Material
 
 __all__ = ["RenderResult", "default_spacing", "reference_radiosity_at", "render_reference", "sample_irradiance"]
@@ -169,6 +170,8 @@ def render_reference(
     max_pairs: int = 1 << 22,
     max_samples: int = 2_000_000,
     progress: bool = False,
+    specular: bool = False,
+    roughness: float = 0.3,
 ) -> RenderResult:
     """Render the ground-truth image of a homogeneous translucent mesh.
 
@@ -185,6 +188,9 @@ def render_reference(
         max_pairs: pair budget of one integrator chunk (bounds memory).
         max_samples: refuse spacings that need more samples than this (ValueError).
         progress: show tqdm bars.
+        specular: add the boundary's GGX specular reflection (:func:`~torchsss.pipelines.specular.specular_radiance`)
+            with the same visibility; off by default so that images compare subsurface transport alone.
+        roughness: GGX alpha of the specular term.
 
     Returns:
         A :class:`RenderResult`; ``stats`` holds the spacing, counts and the time of every stage.
@@ -229,5 +235,12 @@ def render_reference(
     else:
         ft = schlick_transmittance(cos_o, material.eta)
     radiance = ft / math.pi * radiosity * gbuf.mask
+    if specular:
+        pix = gbuf.position.flatten(2).transpose(1, 2)
+        pix_n = gbuf.normal.flatten(2).transpose(1, 2)
+        vis = [None if shadows == "none" else
+               ray_visibility(mesh, light, pix[0], pix_n[0]).unsqueeze(0) if shadows == "raytrace" else
+               shadow_visibility(build_shadow_map(mesh, light, 2048), pix, pix_n, light) for light in lights]
+        radiance = radiance + specular_radiance(gbuf, lights, material.eta, roughness=roughness, visibility=vis)
     stats["t_total_s"] = time.perf_counter() - t0
     return RenderResult(radiance, radiosity, gbuf.mask, stats)
