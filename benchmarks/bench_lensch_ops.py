@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from torchsss.bench import benchmark_parser, compare, setup_benchmark, time_callable, write_results
+from torchsss.bench import benchmark_parser, compare, finish_benchmark, setup_benchmark, time_callable
 from torchsss.ops import sparse_apply_t, sparse_pattern, sv_conv2d, sv_conv2d_reference
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
@@ -170,8 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     records = bench_sv_conv(cfg["sizes"], cfg["ks"], cfg["conv_timing"])
     print("(b) sparse_apply_t vs scipy.sparse CSR")
     records += bench_sparse(cfg["sparse_n"], cfg["sparse_nnz"], cfg["sparse_timing"])
-    json_path, md_path = write_results(args.name, records, args.out_dir, columns=MD_COLUMNS)
-    print(f"wrote {json_path} and {md_path} in {time.perf_counter() - start:.1f} s")
+    finish_benchmark(args.name, records, args.out_dir, columns=MD_COLUMNS, start=start)
     return 0
 
 

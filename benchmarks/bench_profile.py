@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import functools
 import itertools
-import math
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-from torchsss.bench import benchmark_parser, compare, setup_benchmark, time_callable, write_results
+from torchsss.bench import benchmark_parser, compare, finish_benchmark, setup_benchmark, time_callable
 from torchsss.ops import reference_radiosity
 from torchsss.physics import (
     build_profile_table,
@@ -175,12 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     records = bench_lut(cfg["n_distances"], cfg["lut_timing"])
     print("(b) reference_radiosity throughput")
     records += bench_reference(cfg["ref_sizes"], cfg["ref_timing"])
-    for rec in records:
-        bad = [k for k, v in rec.items() if isinstance(v, float) and not math.isfinite(v)]
-        if bad:
-            print(f"warning: non-finite {bad} in {rec}", file=sys.stderr)
-    json_path, md_path = write_results(args.name, records, args.out_dir, columns=MD_COLUMNS)
-    print(f"wrote {json_path} and {md_path} in {time.perf_counter() - start:.1f} s")
+    finish_benchmark(args.name, records, args.out_dir, columns=MD_COLUMNS, start=start)
     return 0
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchsss.bench import compare, time_callable, write_results
+from torchsss.bench import compare, finish_benchmark, time_callable
 from torchsss.geometry import raster as R
 from torchsss.geometry.camera import Camera, transform_points
 
@@ -271,12 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     records += bench_stages(*meshes[main_name], main_name, cfg)
     print(f"(c) variants against the default call, {main_name}, 1 thread")
     records += bench_variants(*meshes[main_name], main_name, cfg)
-    for rec in records:
-        bad = [k for k, v in rec.items() if isinstance(v, float) and not math.isfinite(v)]
-        if bad:
-            print(f"warning: non-finite {bad} in {rec}", file=sys.stderr)
-    json_path, md_path = write_results(args.name, records, args.out_dir, columns=MD_COLUMNS)
-    print(f"wrote {json_path} and {md_path} in {time.perf_counter() - start:.1f} s")
+    finish_benchmark(args.name, records, args.out_dir, columns=MD_COLUMNS, start=start)
     return 0
 
 

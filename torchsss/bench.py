@@ -26,6 +26,7 @@ import numbers
 import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -37,6 +38,7 @@ __all__ = [
     "benchmark_parser",
     "compare",
     "environment",
+    "finish_benchmark",
     "format_value",
     "markdown_table",
     "setup_benchmark",
@@ -467,3 +469,20 @@ def setup_benchmark(parser, args) -> None:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+
+
+def finish_benchmark(name: str, records: list[dict[str, Any]], directory: str | os.PathLike[str], *,
+                     columns: Sequence[str] | Mapping[Any, Sequence[str]] | None = None,
+                     start: float | None = None) -> tuple[Path, Path]:
+    """Warn on stderr about non-finite numbers in ``records``, write them (:func:`write_results`), say where.
+
+    ``start`` is the :func:`time.perf_counter` value at the beginning of the run, for the elapsed time.
+    """
+    for rec in records:
+        bad = [k for k, v in rec.items() if isinstance(v, float) and not math.isfinite(v)]
+        if bad:
+            print(f"warning: non-finite {bad} in {rec}", file=sys.stderr)
+    json_path, md_path = write_results(name, records, directory, columns=columns)
+    took = "" if start is None else f" in {time.perf_counter() - start:.1f} s"
+    print(f"wrote {json_path} and {md_path}{took}")
+    return json_path, md_path
