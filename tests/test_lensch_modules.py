@@ -224,3 +224,30 @@ def test_cached_kernels_follow_material_edits(small):
     fresh = module(e).detach()  # with autograd: recomputed from scratch
     torch.testing.assert_close(edited, fresh)
     assert float((edited - first).abs().max()) > 1e-6
+
+
+def test_modules_reject_bad_input(small):
+    mesh, atlas = small
+    geom = local_kernel_geometry(atlas, 5)
+    with pytest.raises(ValueError, match="fresnel"):
+        IrradianceAtlas.from_atlas(atlas, fresnel="fast")
+    with pytest.raises(ValueError, match="position"):
+        IrradianceAtlas(atlas.position[0], atlas.normal, atlas.valid_mask)
+    mod = IrradianceAtlas.from_atlas(atlas)
+    with pytest.raises(ValueError, match="light"):
+        mod(torch.zeros(1, 3, dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="intensity"):
+        mod(torch.zeros(2, 4, dtype=torch.float64), torch.ones(1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="self_term"):
+        LocalResponse(geom, _material(), self_term="exact")
+    with pytest.raises(ValueError, match="distance_scale"):
+        LocalResponse(geom, _material(), distance_scale=torch.ones(1, 1, 32, 32, dtype=torch.float64))
+    with pytest.raises(ValueError, match="valid"):
+        GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, *Material.from_json("skin1").tensors()),
+                       _material(), torch.ones(1, 1, 8, 8, dtype=torch.bool))
+    with pytest.raises(ValueError, match="albedo"):
+        LenschTranslucency(LocalResponse(geom, _material()),
+                           GlobalResponse(vertex_weights(mesh, atlas),
+                                          build_throughput(mesh, *Material.from_json("skin1").tensors()),
+                                          _material(), atlas.valid_mask),
+                           albedo=torch.ones(1, 3, 64, 64, dtype=torch.float64))

@@ -109,3 +109,13 @@ def test_light_from_dict_round_trip_and_errors():
         incident_light("sun", torch.zeros(1, 1, 3))
     with pytest.raises(ValueError, match="points"):
         incident_light(PointLight((0, 0, 1), 1.0), torch.zeros(4, 3))
+
+
+def test_irradiance_gradcheck_float64():
+    torch.manual_seed(1)
+    pts = (torch.randn(1, 6, 3, dtype=torch.float64) * 3).requires_grad_()
+    nrm = torch.nn.functional.normalize(torch.randn(1, 6, 3, dtype=torch.float64) + torch.tensor([0, 0, 2.0]),
+                                        dim=-1).requires_grad_()
+    lights = [PointLight((5.0, -4.0, 30.0), (1e3, 2e3, 3e3)), SpotLight((0, 0, 40), (0, 0, -1), 1e3, cone_deg=45),
+              DirectionalLight((0.2, 0.1, -1.0), 2.0)]
+    assert torch.autograd.gradcheck(lambda p, n: surface_irradiance(p, n, lights, 1.3), (pts, nrm))
