@@ -293,3 +293,18 @@ def test_bench_profile_quick_smoke(tmp_path):
         for key in ("median_s", "pairs_per_s"):
             assert isinstance(r[key], float) and math.isfinite(r[key]) and r[key] > 0, (key, r)
     assert data["environment"]["torch"] == torch.__version__
+
+
+BENCH_ICDF = ROOT / "benchmarks" / "bench_icdf.py"
+
+
+def test_bench_icdf_quick_smoke(tmp_path):
+    out = tmp_path / "results"
+    proc = subprocess.run([sys.executable, str(BENCH_ICDF), "--quick", "--out-dir", str(out)],
+                          capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    records = json.loads((out / "icdf.json").read_text(encoding="utf-8"))["records"]
+    assert {r["n"] for r in records} == {1000, 10000}
+    for r in records:
+        for key in ("descent_ms", "reference_ms", "multinomial_ms", "descent_x", "tables_ms"):
+            assert math.isfinite(r[key]) and r[key] > 0, (key, r)

@@ -128,5 +128,6 @@ def check_shape(x: Tensor, name: str, dims: str, **known: int) -> dict[str, int]
                 f"{name}: expected shape {pattern} with {dim_name}={sizes[dim_name]}, got {tuple(x.shape)}"
             )
         else:
-            sizes[dim_name] = int(size)
+            # int() would specialise a dynamic dimension to a constant while exporting: keep the symbol then
+            sizes[dim_name] = size if is_tracing() else int(size)
     return sizes

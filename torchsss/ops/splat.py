@@ -1,0 +1,789 @@
+"""Shah's image-space splatting (Shah 2007, ch. 6.4): accumulate dipole-weighted splats into the camera image.
+
+Every source :math:`x_i` (a light-view sample: position, transmitted irradiance times area, material) sends light
+to the camera pixels whose surface point :math:`x_o` lies within the truncation radius :math:`r_{max}` of its
+material,
+
+.. math::
+    B(x_o) = \\sum_i [\\xi_i = \\xi_o]\\; [\\,|x_o - x_i| M_{d,i} \\le r_{max}(m_i)\\,]\\;
+             R_d^{m_i}(|x_o - x_i|\\, M_{d,i})\\; E_i\\, dA_i\\, M_{i,i},
+
+with :math:`m_i` the source's material (one row of a material table: several materials in one pass, Shah 6.4.3),
+:math:`\\xi` object ids (a splat never lights another object, Shah 6.4.3's clipping), :math:`M_d, M_i` the
+optional distance and irradiance modifiers of Shah eq. 7.4. Distances are in mm, coefficients in mm^-1,
+:math:`R_d` in mm^-2, so :math:`B` has the units of :math:`E\\,dA` per mm^2 (the outgoing radiance is
+:math:`F_t/\\pi \\cdot B`). The truncation is a *disk* of radius :math:`r_{max}` in world space around the source
+(:func:`torchsss.physics.r_max` solves Shah eq. 6.16 for it); it is applied to the scaled distance
+:math:`|x_o - x_i| M_d`, so a source's world-space reach is :math:`r_{max} / \\min_c M_{d,i,c}`.
+
+Two implementations compute the same sum:
+
+* ``"window"`` (Shah's splat, scatter form): each splat centre is projected with ``view_proj``; a
+  :math:`K_y \\times K_x` pixel window around it is tested and its weights are accumulated with
+  ``scatter_add`` (the only accumulation that exports to ONNX exactly, see ONNX_NOTES.md). The automatic
+  window is conservative (:func:`splat_window_size`); a fixed ``window`` (needed for ONNX export) misses the
+  pixels of a footprint that does not fit in it.
+* ``"tile"`` (gather form): the covered pixels are grouped in tiles of :math:`T \\times T` (tile-major order);
+  each tile sums over the splats whose world-space reach touches the tile's bounding box (per-tile candidate
+  lists, tiles sorted by candidate count and processed in chunks). No projection, no window, no truncation error;
+  eager only (the candidate lists have data-dependent sizes).
+
+Both are checked against the all-pairs :func:`torchsss.ops.reference.reference_radiosity` with a truncated
+profile; ``benchmarks/bench_splat.py`` measures them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchsss._checks import (
+    as_float_tensor,
+    check_nonnegative,
+    check_positive,
+    check_shape,
+    check_tensor,
+    compute_dtype,
+    is_tracing,
+)
+from torchsss.physics.dipole import dipole_rd
+
+__all__ = ["splat_radiosity", "splat_window_size"]
+
+_METHODS = ("auto", "window", "tile")
+#: Pixels of slack added to every projected half extent (absorbs rounding of the projection).
+_MARGIN_PX = 1.0
+#: Upper bound of the (pixel, splat) candidate taps formed per chunk (indices, masks, distances); each call has
+#: a fixed cost of a few dozen tensor ops, so chunks are large; ``max_memory_mb`` can lower the bound.
+_MAX_CHUNK_TAPS = 1 << 20
+#: Upper bound of the (pixel, splat) pairs per evaluation of the profile (~25 elementwise passes of C channels).
+_EVAL_PAIRS = 1 << 18
+
+
+# -- validation ------------------------------------------------------------------------------------------------------
+def _shape(x: Tensor, name: str, pattern: str, **known: int) -> dict[str, int]:
+    """:func:`check_shape`, skipped while tracing.
+
+    ``check_shape`` binds sizes with ``int()``, which would freeze symbolic sizes (the splat count, the image size)
+    into an exported graph.
+    """
+    return dict(known) if is_tracing() else check_shape(x, name, pattern, **known)
+
+
+def _check_int_tensor(x: object, name: str) -> Tensor:
+    if not isinstance(x, Tensor) or x.is_floating_point() or x.is_complex() or x.dtype == torch.bool:
+        got = x.dtype if isinstance(x, Tensor) else type(x).__name__
+        raise TypeError(f"{name}: expected an integer tensor, got {got}")
+    return x
+
+
+def _check_modifier(x: object, name: str, dims: dict[str, int]) -> Tensor:
+    check_tensor(x, name)
+    c = dims["C"]
+    if x.dim() != 3 or x.shape[-1] not in (1, c):
+        raise ValueError(f"{name}: expected shape (B, S, 1) or (B, S, {c}), got {tuple(x.shape)}")
+    _shape(x, name, f"B,S,{x.shape[-1]}", **dims)
+    return x
+
+
+def _material_table(x: object, name: str, c: int) -> Tensor:
+    check_tensor(x, name)
+    if x.dim() == 1:
+        x = x.unsqueeze(0)
+    if x.dim() != 2 or x.shape[-1] != c:
+        raise ValueError(
+            f"{name}: expected shape (M, C) or (C,) with C={c} (the channels of src_flux), got {tuple(x.shape)}"
+        )
+    return x
+
+
+def _per_material(x: object, name: str, m: int, like: Tensor) -> Tensor:
+    t = as_float_tensor(x, name, like=like)
+    if t.dim() > 1 or (t.dim() == 1 and t.shape[0] not in (1, m)):
+        raise ValueError(f"{name}: expected a number or a tensor of shape () or (M,) with M={m}, got {tuple(t.shape)}")
+    return t.reshape(-1).expand(m)
+
+
+def _check_positive_int(value: object, name: str, *, odd: bool = False) -> int:
+    what = "an odd int >= 1" if odd else "an int >= 1"
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{name}: expected {what}, got {type(value).__name__}")
+    if value < 1 or (odd and value % 2 == 0):
+        raise ValueError(f"{name}: expected {what}, got {value!r}")
+    return value
+
+
+def _check_view_proj(view_proj: object, b: int) -> Tensor:
+    check_tensor(view_proj, "view_proj")
+    if view_proj.dim() == 2:
+        view_proj = view_proj.unsqueeze(0)
+    if view_proj.dim() != 3 or view_proj.shape[-2:] != (4, 4) or view_proj.shape[0] not in (1, b):
+        raise ValueError(f"view_proj: expected shape (4, 4) or (B, 4, 4) with B={b}, got {tuple(view_proj.shape)}")
+    return view_proj
+
+
+# -- footprint -------------------------------------------------------------------------------------------------------
+def _footprint(pos: Tensor, reach: Tensor, vp: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Conservative pixel footprint of the world-space balls ``|p - pos| <= reach`` under ``vp``.
+
+    With clip coordinates affine in the point, :math:`a = g_a \\cdot p + a_0` (x or y) and
+    :math:`w = g_w \\cdot p + w_0`, a displacement :math:`\\delta`, :math:`|\\delta| \\le R`, moves NDC by
+    :math:`(g_a - n\\, g_w)\\cdot\\delta / (w_c + g_w\\cdot\\delta)`, hence at most
+    :math:`R\\,|g_a - n\\,g_w| / (w_c - R\\,|g_w|)` while the denominator is positive. This covers the near side of
+    the ball (perspective), whatever the surface's slope. A ball that reaches the camera plane is unbounded (inf).
+
+    Args:
+        pos: (n, 3) ball centres in mm.
+        reach: (n,) ball radii in mm.
+        vp: (n, 4, 4) or (1, 4, 4) world-to-clip matrices.
+        height: image height in pixels.
+        width: image width in pixels.
+
+    Returns:
+        ``centre`` (n, 2) continuous pixel coordinates (column, row; pixel centres at integers), ``half`` (n, 2)
+        half extents in pixels (inf when unbounded, margin included), ``visible`` (n,) whether the ball can reach a
+        pixel centre of the image.
+    """
+    clip = torch.matmul(vp[:, :, :3], pos.unsqueeze(-1)).squeeze(-1) + vp[:, :, 3]  # (n, 4)
+    g = vp[:, :, :3]  # (n|1, 4, 3) gradients of x, y, z, w
+    w_c = clip[:, 3]
+    front = w_c > 0
+    w_safe = torch.where(front, w_c, torch.ones_like(w_c))
+    ndc = clip[:, :2] / w_safe.unsqueeze(-1)  # (n, 2)
+    ndc = torch.where(front.unsqueeze(-1), ndc, torch.zeros_like(ndc))
+    gw_norm = torch.linalg.vector_norm(g[:, 3], dim=-1)  # (n|1,)
+    den = w_c - reach * gw_norm
+    bounded = den > 0
+    den_safe = torch.where(bounded, den, torch.ones_like(den))
+    num = torch.linalg.vector_norm(g[:, :2] - ndc.unsqueeze(-1) * g[:, 3:4], dim=-1)  # (n, 2)
+    half_ndc = reach.unsqueeze(-1) * num / den_safe.unsqueeze(-1)
+    scale = torch.tensor([0.5 * width, 0.5 * height], dtype=pos.dtype, device=pos.device)
+    half = torch.where(bounded.unsqueeze(-1), half_ndc * scale + _MARGIN_PX, torch.full_like(half_ndc, math.inf))
+    centre = torch.stack([(ndc[:, 0] + 1.0) * (0.5 * width) - 0.5, (1.0 - ndc[:, 1]) * (0.5 * height) - 0.5], -1)
+    size = torch.tensor([width - 1.0, height - 1.0], dtype=pos.dtype, device=pos.device)
+    on_image = ((centre + half >= 0) & (centre - half <= size)).all(-1)
+    # a ball entirely behind the camera plane (w <= 0 everywhere in it) sees nothing
+    visible = (w_c + reach * gw_norm > 0) & (~bounded | on_image)
+    return centre, half, visible
+
+
+def _window_extent(half: Tensor, size: int) -> int:
+    """Smallest odd window side covering ``half`` pixels around a rounded centre, capped at ``size``."""
+    if half.numel() == 0:
+        return 1
+    h = float(half.max())
+    if not math.isfinite(h) or 2 * math.ceil(h) + 1 >= size:
+        return size
+    return 2 * math.ceil(h) + 1
+
+
+def splat_window_size(src_pos: Tensor, view_proj: Tensor, radius: Tensor | float, height: int, width: int) -> int:
+    """Side :math:`K` of a square window that holds every visible splat's footprint (for ``window=`` of the op).
+
+    The footprint of a splat is the projection of the world-space ball of ``radius`` around its centre; its
+    half extent is bounded in closed form, including the perspective growth of the ball's near side (see the
+    module docstring of :mod:`torchsss.ops.splat`), plus one pixel of slack. Splats whose ball cannot reach the
+    image (off-screen, behind the camera) are ignored; a ball that reaches the camera plane needs the whole image.
+    The result is at most ``max(height, width)`` rounded up to odd (such a window covers the image from any
+    centre).
+
+    Args:
+        src_pos: :math:`(B, S, 3)` splat centres in mm.
+        view_proj: :math:`(4, 4)` or :math:`(B, 4, 4)` world-to-clip matrix of the camera (OpenGL conventions).
+        radius: world-space reach in mm, a number or :math:`(B, S)` (e.g. ``r_max[src_material]``).
+        height: image height :math:`H` in pixels.
+        width: image width :math:`W` in pixels.
+
+    Returns:
+        An odd int :math:`K \\ge 1`.
+
+    Raises:
+        TypeError: non-tensor or non-floating inputs, non-int sizes.
+        ValueError: wrong shapes, non-positive radius or sizes.
+
+    Examples:
+        >>> vp = torch.eye(4)  # orthographic: NDC = world x, y
+        >>> splat_window_size(torch.zeros(1, 1, 3), vp, 0.25, 16, 16)  # 0.25 NDC = 2 px, +1 px slack
+        7
+    """
+    check_tensor(src_pos, "src_pos")
+    dims = check_shape(src_pos, "src_pos", "B,S,3")
+    vp = _check_view_proj(view_proj, dims["B"])
+    h = _check_positive_int(height, "height")
+    w = _check_positive_int(width, "width")
+    rad = as_float_tensor(radius, "radius", like=src_pos)
+    if rad.dim() != 0:
+        check_shape(rad, "radius", "B,S", **dims)
+    check_positive(rad, "radius")
+    b, s = dims["B"], dims["S"]
+    _, dtype = compute_dtype(src_pos, vp, rad)
+    pos = src_pos.detach().to(dtype).reshape(b * s, 3)
+    reach = rad.detach().to(dtype).expand(b, s).reshape(b * s)
+    sb = torch.arange(b * s, device=pos.device) // max(s, 1)
+    vps = vp.detach().to(dtype)
+    _, half, visible = _footprint(pos, reach, vps if vps.shape[0] == 1 else vps[sb], h, w)
+    ky = _window_extent(half[visible, 1], h)
+    kx = _window_extent(half[visible, 0], w)
+    k = max(kx, ky)
+    return k if k % 2 == 1 else k + 1
+
+
+# -- shared pieces -----------------------------------------------------------------------------------------------------
+def _profile(
+    r: Tensor, valid: Tensor | None, md: Tensor | None, rmax: Tensor, sa: Tensor, ss: Tensor, eta: Tensor
+) -> Tensor:
+    """Truncated, masked :math:`R_d(r M_d)`: zero where ``valid`` is False or :math:`r M_d > r_{max}`.
+
+    Channels first: ``r`` is :math:`(1, ...)`, the material :math:`(C, 1, ...)`, the result :math:`(C, ...)`, so
+    that the elementwise passes run over contiguous pairs rather than over a trailing dimension of 3.
+    """
+    r_eff = r if md is None else r * md
+    keep = r_eff <= rmax
+    if valid is not None:
+        keep = keep & valid
+    rd = dipole_rd(r_eff, sa, ss, eta)
+    return torch.where(keep, rd, torch.zeros_like(rd))
+
+
+def _sqrt0(x: Tensor) -> Tensor:
+    """:math:`\\sqrt{x}` with gradient 0 at :math:`x = 0` (coincident points)."""
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict, mat: tuple, step: int) -> Tensor:
+    """Add :math:`R_d(r)\\,E\\,dA` of a list of pairs to ``out`` :math:`(C, N)` (``index`` into its columns).
+
+    ``r`` are the pairs' distances (mm), ``splat`` their sources in ``src``; ``mat`` = (sigma_a (C, 1),
+    sigma_s_prime (C, 1), eta (1, 1), r_max (1, 1)) of the one material of ``src`` (the eager paths handle one
+    material at a time, so no per-pair material gather). The pairs are evaluated ``step`` at a time.
+    """
+    c = out.shape[0]
+    for i in range(0, index.numel(), step):
+        sl = slice(i, i + step)
+        sp = splat[sl]
+        md = None if src["md"] is None else src["md"][sp].T
+        rd = _profile(r[sl].unsqueeze(0), None, md, mat[3], mat[0], mat[1], mat[2])  # (C, P)
+        out = out.scatter_add(1, index[sl].expand(c, -1), rd * src["flux"][sp].T)
+    return out
+
+
+def _take(src: dict, sel: Tensor | slice) -> dict:
+    return {k: (v if v is None else v[sel]) for k, v in src.items()}
+
+
+def _chunk(budget_bytes: int, per_item_taps: int, dtype: torch.dtype, c: int, cap: int = _MAX_CHUNK_TAPS) -> int:
+    """Items (splats, tiles, pairs) per chunk: at most ``cap`` (pixel, splat) pairs and about ``budget_bytes``."""
+    e = torch.empty((), dtype=dtype).element_size()
+    per_tap = 24 + (4 + 6 * c) * e  # indices, masks, distances and the live profile temporaries of one pair
+    taps = max(1, min(cap, budget_bytes // per_tap))
+    return max(1, taps // max(1, per_item_taps))
+
+
+# -- window (scatter) --------------------------------------------------------------------------------------------------
+def _window_taps(
+    src: dict,
+    x0: Tensor,
+    y0: Tensor,
+    kx: int,
+    ky: int,
+    dst_valid: Tensor,
+    dst_obj: Tensor | None,
+    h: int,
+    w: int,
+    box: tuple[int, int, int, int] | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Flat pixel index (s, ky*kx) of every window tap and whether it is a valid receiver of its splat.
+
+    ``box`` = (row0, col0, rows, cols) is the part of the image that holds receivers (default: all of it); the
+    window origins ``x0``, ``y0`` are relative to it.
+    """
+    oy, ox, bh, bw = (0, 0, h, w) if box is None else box
+    dev = x0.device
+    xs = x0.unsqueeze(-1) + torch.arange(kx, device=dev)  # (s, kx)
+    ys = y0.unsqueeze(-1) + torch.arange(ky, device=dev)  # (s, ky)
+    inside = ((ys >= 0) & (ys < bh)).unsqueeze(-1) & ((xs >= 0) & (xs < bw)).unsqueeze(-2)  # (s, ky, kx)
+    pix = (
+        src["batch"][:, None, None] * (h * w)
+        + (ys.clamp(0, bh - 1) + oy).unsqueeze(-1) * w
+        + (xs.clamp(0, bw - 1) + ox).unsqueeze(-2)
+    ).flatten(1)
+    valid = inside.flatten(1) & dst_valid[pix]
+    if dst_obj is not None:
+        valid = valid & (dst_obj[pix] == src["obj"].unsqueeze(-1))
+    return pix, valid
+
+
+def _window_origin(centre: Tensor, kx: int, ky: int, h: int, w: int) -> tuple[Tensor, Tensor]:
+    """Top-left tap of each window: centred on the rounded splat centre, then shifted to lie inside the image."""
+    cxy = torch.round(centre.clamp(-4.0 * (h + w), 4.0 * (h + w))).to(torch.int64)  # (n, 2) column, row
+    x0 = torch.clamp(cxy[:, 0] - kx // 2, min=0, max=w - kx)
+    y0 = torch.clamp(cxy[:, 1] - ky // 2, min=0, max=h - ky)
+    return x0, y0
+
+
+def _splat_window_traced(
+    src: dict, dst: Tensor, dst_valid: Tensor, dst_obj: Tensor | None, vp: Tensor, b: int, h: int, w: int, window: int
+) -> Tensor:
+    """Exportable window path: one dense chunk, per-splat material rows in ``src``; returns (C, B*H*W)."""
+    c = src["flux"].shape[-1]
+    centre, _, _ = _footprint(src["pos"], src["reach"], vp if vp.shape[0] == 1 else vp[src["batch"]], h, w)
+    x0, y0 = _window_origin(centre, window, window, h, w)
+    pix, valid = _window_taps(src, x0, y0, window, window, dst_valid, dst_obj, h, w)  # (S, K)
+    d = dst[:, pix] - src["pos"].T.unsqueeze(-1)  # (3, S, K)
+    r = _sqrt0(d[0:1].square() + d[1:2].square() + d[2:3].square())  # (1, S, K)
+    md = None if src["md"] is None else src["md"].T.unsqueeze(-1)
+    wgt = _profile(
+        r,
+        valid.unsqueeze(0),
+        md,
+        src["rmax"][None, :, None],
+        src["sa"].T.unsqueeze(-1),
+        src["ss"].T.unsqueeze(-1),
+        src["eta"][None, :, None],
+    )  # (C, S, K)
+    contrib = (wgt * src["flux"].T.unsqueeze(-1)).reshape(c, -1)
+    out = torch.zeros(c, b * h * w, dtype=dst.dtype, device=dst.device)
+    return out.scatter_add(1, pix.reshape(1, -1).expand(c, -1), contrib)
+
+
+def _splat_window(
+    out: Tensor,
+    src: dict,
+    mat: tuple,
+    dst: Tensor,
+    dst_valid: Tensor,
+    dst_obj: Tensor | None,
+    vp: Tensor,
+    h: int,
+    w: int,
+    window: int | None,
+    budget: int,
+) -> Tensor:
+    """Eager window path for the splats of one material; adds to ``out`` (C, B*H*W).
+
+    Off-screen splats are dropped. Without a fixed window, splats are grouped by footprint size (powers of two)
+    so that small footprints do not pay for the largest one. The taps are compacted to the receivers within
+    reach before the profile is evaluated.
+    """
+    centre, half, visible = _footprint(src["pos"], src["reach"], vp if vp.shape[0] == 1 else vp[src["batch"]], h, w)
+    eval_pairs = _chunk(budget, 1, dst.dtype, out.shape[0], cap=_EVAL_PAIRS)
+    # automatic windows only need to cover the bounding box of the receivers (over the batch): crop to it. A
+    # fixed window is placed in the whole image, as in the traced path, so that both truncate alike.
+    rows = torch.nonzero(dst_valid.reshape(-1, h, w).any(0).any(1)).squeeze(-1)
+    cols = torch.nonzero(dst_valid.reshape(-1, h, w).any(0).any(0)).squeeze(-1)
+    if rows.numel() == 0:
+        return out
+    oy, ox, bh, bw = 0, 0, h, w
+    if window is None:
+        oy, ox = int(rows[0]), int(cols[0])
+        bh, bw = int(rows[-1]) - oy + 1, int(cols[-1]) - ox + 1
+    offset = torch.tensor([ox, oy], dtype=centre.dtype, device=centre.device)
+    lo, hi = offset, offset + torch.tensor([bw - 1, bh - 1], dtype=centre.dtype, device=centre.device)
+    visible = visible & ((centre + half >= lo) & (centre - half <= hi)).all(-1)
+    keep = torch.nonzero(visible).squeeze(-1)
+    src, centre, half = _take(src, keep), centre[keep] - offset, half[keep]
+    if keep.numel() == 0:
+        return out
+    if window is not None:
+        groups = [(torch.arange(keep.numel(), device=keep.device), min(window, bw), min(window, bh))]
+    else:
+        need = half.clamp(max=4.0 * (h + w)).ceil()  # (n, 2) half extents in whole pixels
+        level = torch.log2(need.amax(-1).clamp_min(1.0)).ceil().to(torch.int64)
+        groups = []
+        for lv in torch.unique(level).tolist():
+            idx = torch.nonzero(level == lv).squeeze(-1)
+            hx, hy = need[idx].amax(0).tolist()
+            groups.append((idx, min(bw, 2 * int(hx) + 1), min(bh, 2 * int(hy) + 1)))
+    for idx, kx, ky in groups:
+        g = _take(src, idx)
+        x0, y0 = _window_origin(centre[idx], kx, ky, bh, bw)
+        step = _chunk(budget, kx * ky, dst.dtype, out.shape[0])
+        for i0 in range(0, idx.numel(), step):
+            sub = _take(g, slice(i0, i0 + step))
+            pix, valid = _window_taps(
+                sub, x0[i0 : i0 + step], y0[i0 : i0 + step], kx, ky, dst_valid, dst_obj, h, w, (oy, ox, bh, bw)
+            )
+            si, ki = torch.nonzero(valid, as_tuple=True)  # receivers first: most window taps are background
+            pq = pix[si, ki]
+            d = dst[:, pq] - sub["pos"][si].T  # (3, P)
+            r = _sqrt0(d[0].square() + d[1].square() + d[2].square())
+            near = torch.nonzero(r <= sub["reach"][si]).squeeze(-1)
+            if near.numel():
+                out = _accumulate(out, pq[near], r[near], si[near], sub, mat, eval_pairs)
+    return out
+
+
+# -- tile (gather) -----------------------------------------------------------------------------------------------------
+def _to_tiles(x: Tensor, t: int) -> Tensor:
+    """(H, W, ...) -> (nty * ntx, t*t, ...) after zero-padding H, W to multiples of ``t``."""
+    h, w = x.shape[:2]
+    hp, wp = -(-h // t) * t, -(-w // t) * t
+    if (hp, wp) != (h, w):
+        pad = torch.zeros((hp, wp, *x.shape[2:]), dtype=x.dtype, device=x.device)
+        pad[:h, :w] = x
+        x = pad
+    rest = x.shape[2:]
+    x = x.reshape(hp // t, t, wp // t, t, *rest).transpose(1, 2)
+    return x.reshape((hp // t) * (wp // t), t * t, *rest)
+
+
+class _Tiles:
+    """The covered pixels of one image, in tile-major order, cut into groups of ``t*t`` pixels (the "tiles").
+
+    Taking only covered pixels (rather than the whole ``t x t`` squares) means no background pixel is ever paired
+    with a splat; a group is a tile of the image, or the pieces of two neighbouring tiles where the covered pixels
+    do not fill one. Attributes: ``pix`` (ng, G) flat pixel index, ``valid`` (ng, G) (False on the padding of
+    the last group), ``pos`` (ng, G, 3), ``obj`` (ng, G) or None, ``lo``/``hi`` (ng, 3) bounding boxes,
+    ``omin``/``omax`` (ng,) object-id ranges.
+    """
+
+    def __init__(self, dst: Tensor, valid: Tensor, obj: Tensor | None, t: int) -> None:
+        h, w = valid.shape
+        dev = dst.device
+        order = _to_tiles(torch.arange(h * w, device=dev).reshape(h, w), t).flatten()
+        pix = order[_to_tiles(valid, t).flatten()]  # covered pixels, tile by tile
+        g = t * t
+        ng = max(1, -(-pix.numel() // g))
+        self.valid = (torch.arange(ng * g, device=dev) < pix.numel()).reshape(ng, g)
+        self.pix = torch.cat([pix, pix.new_zeros(ng * g - pix.numel())]).reshape(ng, g)
+        self.pos = dst.reshape(h * w, 3)[self.pix]
+        inf = torch.tensor(math.inf, dtype=dst.dtype, device=dev)
+        vm = self.valid.unsqueeze(-1)
+        self.lo = torch.where(vm, self.pos, inf).amin(1)  # (ng, 3); +inf for a group without receivers
+        self.hi = torch.where(vm, self.pos, -inf).amax(1)
+        self.obj = None if obj is None else obj.reshape(h * w)[self.pix]
+        if self.obj is not None:
+            big = torch.iinfo(self.obj.dtype)
+            self.omin = torch.where(self.valid, self.obj, big.max).amin(1)
+            self.omax = torch.where(self.valid, self.obj, big.min).amax(1)
+
+    def cull(self, idx: Tensor | slice, src: dict) -> Tensor:
+        """(tiles, splats) bool: the splat's reach touches the tile's box (and the tile holds its object id)."""
+        p = src["pos"]
+        gap = (self.lo[idx].unsqueeze(1) - p).clamp_min(0) + (p - self.hi[idx].unsqueeze(1)).clamp_min(0)
+        hit = (gap * gap).sum(-1) <= src["reach"] * src["reach"]
+        if self.obj is not None:
+            o = src["obj"]
+            hit = hit & (o >= self.omin[idx].unsqueeze(1)) & (o <= self.omax[idx].unsqueeze(1))
+        return hit
+
+
+def _tile_block(tiles: _Tiles, idx: Tensor, cand: Tensor, ok: Tensor, src: dict, mat: tuple) -> Tensor:
+    """Dense gather for tiles ``idx`` and their padded candidate lists ``cand`` (ntc, L): (C, ntc, T2)."""
+    d = tiles.pos[idx].unsqueeze(2) - src["pos"][cand].unsqueeze(1)  # (ntc, T2, L, 3), exact differences
+    r = _sqrt0(d[..., 0].square() + d[..., 1].square() + d[..., 2].square())  # (ntc, T2, L)
+    valid = tiles.valid[idx].unsqueeze(-1) & ok.unsqueeze(1)
+    if tiles.obj is not None:
+        valid = valid & (tiles.obj[idx].unsqueeze(-1) == src["obj"][cand].unsqueeze(1))
+    md = None if src["md"] is None else src["md"][cand].permute(2, 0, 1).unsqueeze(2)  # (1|C, ntc, 1, L)
+    sa, ss, eta, rmax = (x.reshape(-1, 1, 1, 1) for x in mat)
+    rd = _profile(r.unsqueeze(0), valid.unsqueeze(0), md, rmax, sa, ss, eta)  # (C, ntc, T2, L)
+    flux = src["flux"][cand].permute(2, 0, 1).unsqueeze(2)  # (C, ntc, 1, L)
+    return (rd * flux).sum(-1)
+
+
+def _splat_tile_one(src: dict, mat: tuple, tiles: _Tiles, c: int, budget: int) -> Tensor:
+    """Gather form for one image and one material: (C, nt, T2) radiosity per tile pixel.
+
+    Pass 1 counts each tile's candidates; pass 2 takes the tiles by decreasing count, so that a chunk's padded
+    candidate length is close to the counts of its tiles, and evaluates every (pixel, candidate) pair densely
+    (masked), summing over the candidates. Long candidate lists are cut into pieces.
+    """
+    n = src["pos"].shape[0]
+    nt, t2 = tiles.valid.shape
+    dev, dtype = tiles.pos.device, tiles.pos.dtype
+    rows = max(1, budget // max(1, 32 * n))  # tiles per culling chunk (the (tiles, splats, 3) temporaries)
+    counts = torch.cat([tiles.cull(slice(i, i + rows), src).sum(1) for i in range(0, nt, rows)])
+    order = torch.argsort(counts, descending=True, stable=True)
+    sorted_counts = counts[order].tolist()
+    ar = torch.arange(n, device=dev)
+    done_idx, done_val = [], []
+    i = 0
+    while i < nt and sorted_counts[i] > 0:
+        length = sorted_counts[i]
+        idx = order[i : i + _chunk(budget, t2 * length, dtype, c, cap=_EVAL_PAIRS)]
+        i += idx.numel()
+        hit = tiles.cull(idx, src)  # (ntc, n)
+        slot = torch.where(hit, hit.cumsum(1) - 1, torch.full_like(hit, length, dtype=torch.int64))
+        cand = torch.zeros(idx.numel(), length + 1, dtype=torch.int64, device=dev)
+        cand = cand.scatter_(1, slot, ar.expand(idx.numel(), n))[:, :length]  # (ntc, L), padded
+        ok = torch.arange(length, device=dev) < counts[idx].unsqueeze(-1)
+        piece = _chunk(budget, idx.numel() * t2, dtype, c, cap=_EVAL_PAIRS)  # candidates per dense block
+        acc = None
+        for l0 in range(0, length, piece):
+            part = _tile_block(tiles, idx, cand[:, l0 : l0 + piece], ok[:, l0 : l0 + piece], src, mat)
+            acc = part if acc is None else acc + part
+        done_idx.append(idx)
+        done_val.append(acc)
+    out = torch.zeros(nt, c, t2, dtype=dtype, device=dev)
+    if done_idx:
+        out = out.index_put((torch.cat(done_idx),), torch.cat(done_val, 1).transpose(0, 1))
+    return out.transpose(0, 1)
+
+
+def _splat_tile(out: Tensor, src: dict, mat: tuple, tiles: list[_Tiles], h: int, w: int, budget: int) -> Tensor:
+    """Eager tile path for the splats of one material over the batch; adds to ``out`` (C, B*H*W)."""
+    b, c = len(tiles), out.shape[0]
+    bounds = torch.searchsorted(src["batch"], torch.arange(b + 1, device=out.device)).tolist()
+    acc = torch.zeros(b * h * w, c, dtype=out.dtype, device=out.device)
+    for bi in range(b):
+        if bounds[bi + 1] == bounds[bi]:
+            continue
+        res = _splat_tile_one(_take(src, slice(bounds[bi], bounds[bi + 1])), mat, tiles[bi], c, budget)
+        tl = tiles[bi]
+        acc = acc.index_put((tl.pix[tl.valid] + bi * h * w,), res.permute(1, 2, 0)[tl.valid])
+    return out + acc.T
+
+
+# -- public op -------------------------------------------------------------------------------------------------------
+def splat_radiosity(
+    src_pos: Tensor,
+    src_flux: Tensor,
+    dst_pos: Tensor,
+    dst_mask: Tensor,
+    view_proj: Tensor,
+    sigma_a: Tensor,
+    sigma_s_prime: Tensor,
+    eta: Tensor | float,
+    r_max: Tensor | float,
+    *,
+    src_material: Tensor | None = None,
+    src_object: Tensor | None = None,
+    dst_object: Tensor | None = None,
+    src_distance_scale: Tensor | None = None,
+    src_irradiance_scale: Tensor | None = None,
+    method: str = "auto",
+    window: int | None = None,
+    tile_size: int = 16,
+    max_memory_mb: float = 256.0,
+) -> Tensor:
+    """Radiosity image of Shah's splatting: :math:`B(x_o) = \\sum_i R_d^{m_i}(|x_o - x_i| M_{d,i}) E_i dA_i M_{i,i}`.
+
+    The sum runs over the sources whose scaled distance to the pixel's surface point is at most the
+    :math:`r_{max}` of their material (a world-space disk, zero beyond), and, when object ids are given, over the
+    sources of the pixel's object only (Shah 6.4.3). Several materials are splatted in one pass: each source
+    picks its row of the material table with ``src_material``.
+
+    ``method="window"`` is Shah's splat (scatter form): each splat centre is projected with ``view_proj`` and the
+    pixels of a window around it are tested and accumulated with ``scatter_add``. With ``window=None`` (eager) the
+    window of each splat holds its whole footprint: a closed-form bound of the projected :math:`r_{max}` ball
+    (:func:`splat_window_size`) that includes the perspective growth of the ball's near side, whatever the
+    surface's slope. Nothing within reach is missed as long as ``dst_pos`` is the G-buffer of ``view_proj`` (each
+    pixel's point projects into that pixel); splats are grouped by footprint size (powers of two) and the windows
+    are cropped to the bounding box of the covered pixels; a ball that reaches the camera plane gets the whole
+    image. A fixed ``window`` :math:`K` (required to trace/export, where it is frozen into the graph) misses the
+    pixels of a footprint wider than :math:`K`: splats close to the camera or with a large :math:`r_{max}` in
+    pixels (check with :func:`splat_window_size`), and any pixel whose ``dst_pos`` does not project into its own
+    pixel. ``method="tile"`` is the gather form: the covered pixels in tiles of ``tile_size`` :math:`^2`, each
+    summing over the splats whose reach touches the tile's world-space bounding box; it needs neither
+    ``view_proj`` nor a window and misses nothing, but cannot be exported. ``"auto"`` picks ``"window"`` while
+    tracing/exporting and ``"tile"`` otherwise (faster in ``benchmarks/bench_splat.py``).
+
+    In eager mode, splats that cannot reach a pixel (off-screen or behind the camera for the window path; sources
+    with zero flux unless ``src_flux``/``src_irradiance_scale`` require gradients) are dropped first, materials are
+    processed one after the other, and the work is chunked over splats (window) or tiles (tile) so that the
+    temporaries stay below about ``max_memory_mb``. While tracing/exporting, the window path is one dense chunk
+    (:math:`S K^2` taps) with per-splat material rows, and the data-dependent checks are skipped.
+
+    Differentiable with respect to ``src_flux``, the material tables ``sigma_a``, ``sigma_s_prime``, ``eta`` and
+    the modifiers (the truncation is a step: ``r_max`` gets no gradient). Gradients also reach the positions
+    through the distances (the truncation edge and the window placement contribute none).
+
+    Args:
+        src_pos: :math:`(B, S, 3)` source positions :math:`x_i` in mm (light-view samples).
+        src_flux: :math:`(B, S, C)` transmitted irradiance times area, :math:`E_i\\,dA_i`.
+        dst_pos: :math:`(B, 3, H, W)` camera G-buffer positions :math:`x_o` in mm; ignored (may be NaN/inf) where
+            ``dst_mask`` is False.
+        dst_mask: :math:`(B, 1, H, W)` bool, pixels that see a surface.
+        view_proj: :math:`(4, 4)` or :math:`(B, 4, 4)` world-to-clip matrix of the camera that produced
+            ``dst_pos`` (OpenGL conventions, row 0 at the top, :mod:`torchsss.geometry.camera`); used by the
+            window path only.
+        sigma_a: :math:`(M, C)` (or :math:`(C,)` for one material) absorption coefficients in mm^-1.
+        sigma_s_prime: :math:`(M, C)` (or :math:`(C,)`) reduced scattering coefficients in mm^-1.
+        eta: relative index of refraction per material, a number, :math:`()` or :math:`(M,)`.
+        r_max: truncation radius per material in mm (> 0), a number, :math:`()` or :math:`(M,)`, e.g.
+            ``torchsss.physics.r_max(sa, ss, eta, eps).amax(-1)``.
+        src_material: :math:`(B, S)` integer row of the material table of each source, in ``[0, M)``; required
+            when :math:`M > 1`.
+        src_object: :math:`(B, S)` integer object id of each source; give both ids or neither.
+        dst_object: :math:`(B, 1, H, W)` integer object id of each pixel.
+        src_distance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` distance multiplier :math:`M_d > 0` (Shah eq.
+            7.4); the truncation applies to the scaled distance, so the reach is :math:`r_{max}/\\min_c M_d`.
+        src_irradiance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` irradiance modulation :math:`M_i \\ge 0`.
+        method: ``"auto"``, ``"window"`` or ``"tile"``.
+        window: odd window side :math:`K` in pixels for ``"window"``, or None to compute it (eager only).
+        tile_size: tile side :math:`T` in pixels for ``"tile"``.
+        max_memory_mb: soft bound of the temporaries of one chunk, in MiB (> 0).
+
+    Returns:
+        :math:`(B, C, H, W)` radiosity (zero where ``dst_mask`` is False), in the promoted floating dtype of the
+        inputs (float16/bfloat16 computed in float32), on their device.
+
+    Raises:
+        TypeError: non-tensor or non-floating inputs, non-bool ``dst_mask``, non-integer ids or materials, a
+            non-int ``window``/``tile_size``, a non-str ``method``.
+        ValueError: shapes that disagree (the message names the argument), material indices out of range, a
+            missing ``src_material`` with several materials, only one of the object ids, non-positive ``r_max``,
+            modifiers out of range, non-finite ``src_pos`` or unmasked ``dst_pos``, an unknown ``method``, an even
+            ``window``, ``"tile"`` or ``window=None`` while tracing/exporting.
+
+    Examples:
+        >>> from torchsss.physics import preset
+        >>> sa, ss, eta = preset("skin1").tensors(torch.float32)
+        >>> ys, xs = torch.meshgrid(torch.linspace(-3.5, 3.5, 8), torch.linspace(-3.5, 3.5, 8), indexing="ij")
+        >>> dst = torch.stack([xs, -ys, torch.zeros_like(xs)])[None]           # a plane z = 0, 1 mm pixels
+        >>> vp = torch.diag(torch.tensor([0.25, 0.25, 1.0, 1.0]))              # orthographic, 8 mm wide
+        >>> src = torch.tensor([[[0.0, 0.0, 0.0]]])
+        >>> out = splat_radiosity(src, torch.ones(1, 1, 3), dst, torch.ones(1, 1, 8, 8, dtype=torch.bool), vp,
+        ...                       sa, ss, eta, r_max=2.0, method="window")
+        >>> out.shape, bool((out[0, :, 0, 0] == 0).all()), bool((out[0, :, 3, 3] > 0).all())  # corner beyond r_max
+        (torch.Size([1, 3, 8, 8]), True, True)
+        >>> torch.allclose(out, splat_radiosity(src, torch.ones(1, 1, 3), dst, torch.ones(1, 1, 8, 8,
+        ...                dtype=torch.bool), vp, sa, ss, eta, r_max=2.0, method="tile"))
+        True
+    """
+    tracing = is_tracing()
+    # -- validation --
+    for name, t in (("src_pos", src_pos), ("src_flux", src_flux), ("dst_pos", dst_pos)):
+        check_tensor(t, name)
+    dims = _shape(src_pos, "src_pos", "B,S,3")
+    dims = _shape(src_flux, "src_flux", "B,S,C", **dims)
+    dims = _shape(dst_pos, "dst_pos", "B,3,H,W", **dims)
+    b, s, c = src_flux.shape
+    h, w = dst_pos.shape[-2:]
+    dims = {"B": b, "S": s, "C": c, "H": h, "W": w}
+    if not isinstance(dst_mask, Tensor) or dst_mask.dtype != torch.bool:
+        got = dst_mask.dtype if isinstance(dst_mask, Tensor) else type(dst_mask).__name__
+        raise TypeError(f"dst_mask: expected a bool tensor, got {got}")
+    _shape(dst_mask, "dst_mask", "B,1,H,W", **dims)
+    vp = _check_view_proj(view_proj, b)
+    sa = _material_table(sigma_a, "sigma_a", c)
+    ss = _material_table(sigma_s_prime, "sigma_s_prime", c)
+    m = sa.shape[0]
+    if ss.shape[0] != m:
+        raise ValueError(f"sigma_s_prime: expected shape ({m}, {c}) (as sigma_a), got {tuple(sigma_s_prime.shape)}")
+    et = _per_material(eta, "eta", m, sa)
+    rm = _per_material(r_max, "r_max", m, sa)
+    if not isinstance(method, str):
+        raise TypeError(f"method: expected a str, got {type(method).__name__}")
+    if method not in _METHODS:
+        raise ValueError(f"method: expected one of {_METHODS}, got {method!r}")
+    if window is not None:
+        window = _check_positive_int(window, "window", odd=True)
+    tile_size = _check_positive_int(tile_size, "tile_size")
+    if isinstance(max_memory_mb, bool) or not isinstance(max_memory_mb, (int, float)):
+        raise TypeError(f"max_memory_mb: expected a number > 0, got {type(max_memory_mb).__name__}")
+    if not (math.isfinite(max_memory_mb) and max_memory_mb > 0):
+        raise ValueError(f"max_memory_mb: expected a finite number > 0, got {max_memory_mb!r}")
+    if src_material is None:
+        if m != 1:
+            raise ValueError(f"src_material: expected a (B, S) integer tensor with M={m} materials, got None")
+    else:
+        _check_int_tensor(src_material, "src_material")
+        _shape(src_material, "src_material", "B,S", **dims)
+    if (src_object is None) != (dst_object is None):
+        raise ValueError(
+            "src_object, dst_object: expected both or neither, got only "
+            f"{'src_object' if dst_object is None else 'dst_object'}"
+        )
+    if src_object is not None:
+        _check_int_tensor(src_object, "src_object")
+        _check_int_tensor(dst_object, "dst_object")
+        _shape(src_object, "src_object", "B,S", **dims)
+        _shape(dst_object, "dst_object", "B,1,H,W", **dims)
+    md = None if src_distance_scale is None else _check_modifier(src_distance_scale, "src_distance_scale", dims)
+    mi = None if src_irradiance_scale is None else _check_modifier(src_irradiance_scale, "src_irradiance_scale", dims)
+    if method == "auto":
+        method = "window" if tracing else "tile"
+    if tracing and method == "tile":
+        raise ValueError(
+            "method: expected 'window' while tracing/exporting (the tile path builds candidate lists "
+            "of data-dependent size), got 'tile'"
+        )
+    if tracing and method == "window" and window is None:
+        raise ValueError(
+            "window: expected an odd int while tracing/exporting (a window computed from the data "
+            "would be frozen into the graph), got None"
+        )
+    if not tracing:
+        check_nonnegative(sa, "sigma_a")
+        check_nonnegative(ss, "sigma_s_prime")
+        check_positive(et, "eta")
+        check_positive(rm, "r_max")
+        if md is not None:
+            check_positive(md, "src_distance_scale")
+        if mi is not None:
+            check_nonnegative(mi, "src_irradiance_scale")
+        if not bool(torch.isfinite(src_pos).all()):
+            raise ValueError("src_pos: expected finite positions, got a NaN or inf entry")
+        if not bool((torch.isfinite(dst_pos) | ~dst_mask).all()):
+            raise ValueError("dst_pos: expected finite positions where dst_mask is True, got a NaN or inf entry")
+        if src_material is not None and src_material.numel() > 0:
+            lo, hi = int(src_material.min()), int(src_material.max())
+            if lo < 0 or hi >= m:
+                raise ValueError(
+                    f"src_material: expected indices in [0, {m}) (rows of the material table), "
+                    f"got {lo if lo < 0 else hi}"
+                )
+
+    tensors = [src_pos, src_flux, dst_pos, sa, ss, et, rm] + [x for x in (md, mi) if x is not None]
+    out_dtype, dtype = compute_dtype(*tensors)
+    if h * w == 0 or b == 0:
+        return torch.zeros(b, c, h, w, dtype=out_dtype, device=dst_pos.device)
+
+    # -- flat per-splat arrays (rows sorted by batch element) --
+    n = b * s
+    sa, ss, et, rm = (x.to(dtype) for x in (sa, ss, et, rm))
+    mat = (
+        torch.zeros(n, dtype=torch.int64, device=src_pos.device)
+        if src_material is None
+        else src_material.reshape(n).to(torch.int64)
+    )
+    flux = src_flux.to(dtype).reshape(n, c)
+    if mi is not None:
+        flux = flux * mi.to(dtype).reshape(n, -1)
+    md_flat = None if md is None else md.to(dtype).reshape(n, -1)
+    reach = rm[mat] if md_flat is None else rm[mat] / md_flat.amin(-1)
+    src = {
+        "pos": src_pos.to(dtype).reshape(n, 3),
+        "flux": flux,
+        "batch": torch.arange(n, device=src_pos.device) // (s if tracing else max(s, 1)),
+        "reach": reach,
+        "md": md_flat,
+        "obj": None if src_object is None else src_object.reshape(n),
+    }
+    # -- receivers: sanitised (masked-out entries may be NaN), flattened channels-first --
+    mask_flat = dst_mask.reshape(b * h * w)
+    dst = torch.where(dst_mask, dst_pos.to(dtype), torch.zeros((), dtype=dtype, device=dst_pos.device))
+    dst_obj = None if dst_object is None else dst_object.reshape(b * h * w)
+
+    if tracing:
+        src.update(sa=sa[mat], ss=ss[mat], eta=et[mat], rmax=rm[mat])
+        dst_flat = dst.permute(1, 0, 2, 3).reshape(3, b * h * w)
+        out = _splat_window_traced(src, dst_flat, mask_flat, dst_obj, vp.to(dtype), b, h, w, window)
+        return out.reshape(c, b, h, w).transpose(0, 1).contiguous().to(out_dtype)
+
+    # eager: drop sources without flux (unless their flux needs a gradient), then one material at a time
+    if not (torch.is_grad_enabled() and (src_flux.requires_grad or (mi is not None and mi.requires_grad))):
+        keep = torch.nonzero((flux != 0).any(-1)).squeeze(-1)
+        if keep.numel() < n:
+            src, mat = _take(src, keep), mat[keep]
+    budget = int(max_memory_mb * (1 << 20))
+    out = torch.zeros(c, b * h * w, dtype=dtype, device=dst_pos.device)
+    if method == "window":
+        dst_flat = dst.permute(1, 0, 2, 3).reshape(3, b * h * w)
+    else:
+        grid = dst.permute(0, 2, 3, 1)
+        obj = None if dst_object is None else dst_object[:, 0]
+        tiles = [_Tiles(grid[i], dst_mask[i, 0], None if obj is None else obj[i], tile_size) for i in range(b)]
+    for k in torch.unique(mat).tolist() if m > 1 else ([0] if mat.numel() else []):
+        sub = src if m == 1 else _take(src, torch.nonzero(mat == k).squeeze(-1))
+        row = (sa[k].unsqueeze(-1), ss[k].unsqueeze(-1), et[k].reshape(1, 1), rm[k].reshape(1, 1))
+        if method == "window":
+            out = _splat_window(out, sub, row, dst_flat, mask_flat, dst_obj, vp.to(dtype), h, w, window, budget)
+        else:
+            out = _splat_tile(out, sub, row, tiles, h, w, budget)
+    return out.reshape(c, b, h, w).transpose(0, 1).contiguous().to(out_dtype)
