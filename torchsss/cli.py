@@ -185,11 +185,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--eps", type=float, default=0.01, help="reference: tolerance of the default spacing")
     p_ren.add_argument("--shadows", default="raytrace", choices=["raytrace", "shadowmap", "none"],
                        help="reference: visibility of the lights")
-    p_ren.add_argument("--atlas-resolution", type=int, default=512, help="lensch: texture atlas size (texels)")
-    p_ren.add_argument("--kernel-size", type=int, default=7, help="lensch: local kernel size k (odd)")
+    p_ren.add_argument("--atlas-resolution", type=int, default=512,
+                       help="lensch/icdf/hybrid: texture atlas size (texels)")
+    p_ren.add_argument("--kernel-size", type=int, default=None,
+                       help="lensch: local kernel size k (odd); default: planned from the vertex spacing (5-11)")
     p_ren.add_argument("--threshold", type=float, default=1e-5,
                        help="lensch: throughput threshold relative to the largest entry")
     p_ren.add_argument("--no-blend", action="store_true", help="lensch: skip the local/global blending of §5.4")
+    p_ren.add_argument("--samples", type=int, default=4096,
+                       help="icdf/hybrid: importance samples N per frame (default 4096)")
+    p_ren.add_argument("--seed", type=int, default=0, help="icdf/hybrid: seed of the scrambled Sobol uniforms")
+    p_ren.add_argument("--split-c", type=float, default=0.01,
+                       help="hybrid: Chang's bound c of the local/global split radius R_p (default 0.01)")
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
     p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")
@@ -208,6 +215,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif args.method == "lensch":
             options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
                            threshold=args.threshold, blend=not args.no_blend)
+        elif args.method in ("icdf", "hybrid"):
+            options.update(atlas_resolution=args.atlas_resolution, samples=args.samples, seed=args.seed)
+            if args.method == "hybrid":
+                options["c"] = args.split_c
         try:
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution)
@@ -217,11 +228,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"wrote {summary['exr']}, {summary['png']}, {args.out.with_suffix('.json')}")
         head = (f"{summary['method']}: {summary['width']}x{summary['height']}, "
                 f"{summary['covered_pixels']} covered pixels")
-        if "samples" in st:
+        if "spacing_mm" in st:
             head += f", {st['samples']} surface samples ({st['spacing_mm']:.3f} mm)"
+        elif "samples" in st:
+            head += f", {st['samples']} importance samples"
+        if "nnz" in st:
+            head += f", atlas {st['atlas_resolution']}², {st['nnz']} throughput entries"
         if "t_frame_s" in st:
-            head += (f", atlas {st['atlas_resolution']}², {st['nnz']} throughput entries, precompute "
-                     f"{st['t_precompute_s']:.1f} s, frame {1e3 * st['t_frame_s']:.0f} ms")
+            head += f", precompute {st['t_precompute_s']:.1f} s, frame {1e3 * st['t_frame_s']:.0f} ms"
         print(f"{head}, {summary['seconds']:.1f} s in all")
     if args.command == "profiles":
         if not 0 < args.eps < 1:

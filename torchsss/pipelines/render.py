@@ -4,7 +4,7 @@ This is the one entry point the CLI, tests and benchmarks share, so that every m
 the same input.
 
 Methods register here as ``name -> function(scene, mesh, **options) -> RenderResult``. This issue ships
-``"reference"`` and ``"lensch"``; later methods (splat, icdf, hybrid) add their names.
+``"reference"``, ``"lensch"``, ``"icdf"`` and ``"hybrid"``; ``"splat"`` adds its name when it lands.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from collections.abc import Callable
 import torch
 
 from torchsss.geometry.mesh import Mesh
+from torchsss.pipelines.chang import render_hybrid, render_icdf
 from torchsss.pipelines.lensch import render_lensch
 from torchsss.pipelines.reference import RenderResult, render_reference
 from torchsss.scene import Scene
@@ -29,8 +30,17 @@ def _lensch(scene: Scene, mesh: Mesh, **options) -> RenderResult:
     return render_lensch(mesh, scene.material, scene.lights, scene.camera, **options)
 
 
+def _icdf(scene: Scene, mesh: Mesh, **options) -> RenderResult:
+    return render_icdf(mesh, scene.material, scene.lights, scene.camera, **options)
+
+
+def _hybrid(scene: Scene, mesh: Mesh, **options) -> RenderResult:
+    return render_hybrid(mesh, scene.material, scene.lights, scene.camera, **options)
+
+
 #: Rendering methods by name.
-METHODS: dict[str, Callable[..., RenderResult]] = {"reference": _reference, "lensch": _lensch}
+METHODS: dict[str, Callable[..., RenderResult]] = {"reference": _reference, "lensch": _lensch, "icdf": _icdf,
+                                                   "hybrid": _hybrid}
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,
