@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from torchsss.geometry.lensch import (
     blending_weights,
     build_throughput,
     local_kernel_geometry,
+    plan_kernel_size,
     throughput_values,
     vertex_weights,
 )
@@ -362,3 +364,51 @@ def test_bad_input(small_sphere, small_atlas):
         blending_weights(small_sphere, small_atlas, *MARBLE, kernel_size=6)
     with pytest.raises(ValueError, match="chunk_texels"):
         blending_weights(small_sphere, small_atlas, *MARBLE, chunk_texels=0)
+
+
+def test_plan_kernel_size_follows_vertex_spacing_and_texel_size():
+    coarse, fine = sphere(10.0, 2), sphere(10.0, 4)  # the same surface, edges 4x shorter on the fine one
+    k_coarse, k_fine = plan_kernel_size(coarse, 256), plan_kernel_size(fine, 256)
+    assert k_coarse % 2 == 1 and k_fine % 2 == 1
+    assert k_coarse > k_fine
+    # the kernel reaches ~0.7 median edges when not clamped: check the rule against a direct computation
+    f = fine.faces
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    edge = float((fine.vertices[e[:, 0]] - fine.vertices[e[:, 1]]).norm(dim=1).median())
+    texel = math.sqrt(float(fine.area) / (0.45 * 256 * 256))
+    assert k_fine == min(max(2 * round(0.7 * edge / texel) + 1, 5), 11)
+    # finer texels need more taps for the same reach; the clamps hold
+    assert plan_kernel_size(fine, 1024) >= plan_kernel_size(fine, 256)
+    assert plan_kernel_size(coarse, 4096, k_max=15) == 15
+    assert plan_kernel_size(fine, 16, k_min=3) == 3
+    with pytest.raises(TypeError, match="mesh"):
+        plan_kernel_size("sphere", 512)
+    with pytest.raises(ValueError, match="resolution"):
+        plan_kernel_size(fine, 0)
+    with pytest.raises(ValueError, match="k_min, k_max"):
+        plan_kernel_size(fine, 512, k_min=9, k_max=5)
+    with pytest.raises(ValueError, match="kernel_size"):
+        plan_kernel_size(fine, 512, k_max=8)
+    with pytest.raises(ValueError, match="reach"):
+        plan_kernel_size(fine, 512, reach=0.0)
+
+
+@pytest.mark.parametrize("threshold", [1e-3, 1e-2, 0.3])
+def test_throughput_kdtree_path_matches_brute_force(threshold):
+    """Short cutoffs take the k-d tree path (O(nnz)); it must keep exactly the pairs of the all-pairs test."""
+    mesh = sphere(30.0, 4, dtype=torch.float64)
+    material = SKIN1
+    d, f = _dense(mesh, material)
+    fmax = f.amax(-1)
+    absolute = threshold * float(fmax.max())
+    radius = float(d[fmax >= absolute].max())
+    diag = float((mesh.vertices.amax(0) - mesh.vertices.amin(0)).norm())
+    assert radius < 0.5 * diag  # this case exercises the k-d tree candidates
+    for zero_diagonal in (False, True):
+        tp = build_throughput(mesh, *material, threshold=threshold, zero_diagonal=zero_diagonal)
+        keep = fmax >= absolute
+        if zero_diagonal:
+            keep &= ~torch.eye(mesh.num_vertices, dtype=torch.bool)
+        rows, cols = keep.nonzero(as_tuple=True)
+        assert torch.equal(tp.rows, rows) and torch.equal(tp.cols, cols)
+        torch.testing.assert_close(tp.distance, d[rows, cols], rtol=1e-12, atol=1e-12)

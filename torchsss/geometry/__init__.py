@@ -16,6 +16,7 @@ from torchsss.geometry.lensch import (
     blending_weights,
     build_throughput,
     local_kernel_geometry,
+    plan_kernel_size,
     throughput_values,
     vertex_weights,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "parameterize",
     "perspective",
     "pixel_centers_ndc",
+    "plan_kernel_size",
     "plane",
     "point_inside",
     "rasterize",

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 from torch import Tensor
 from tqdm.auto import tqdm
 
@@ -44,6 +45,7 @@ __all__ = [
     "blending_weights",
     "build_throughput",
     "local_kernel_geometry",
+    "plan_kernel_size",
     "throughput_values",
     "vertex_weights",
 ]
@@ -301,6 +303,27 @@ def _absolute_threshold(vertex_area64: Tensor, sa: Tensor, ss: Tensor, eta: Tens
     return threshold * f_max
 
 
+def _keep_radius(area: float, sa: Tensor, ss: Tensor, eta: Tensor, thr: float) -> float:
+    """Smallest r with ``area * max_c R_d(r) < thr`` (a bound on the kept distances), inf when thr <= 0."""
+    if thr <= 0:
+        return math.inf
+    zero = torch.zeros((), dtype=torch.float64)
+    sa, ss, eta = sa.cpu(), ss.cpu(), eta.cpu()
+    hi = 1.0
+    while area * float(_max_rd(zero + hi, sa, ss, eta)) >= thr:
+        hi *= 2.0
+        if hi > 1e12:
+            return math.inf
+    lo = 0.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if area * float(_max_rd(zero + mid, sa, ss, eta)) >= thr:
+            lo = mid
+        else:
+            hi = mid
+    return hi * (1.0 + 1e-9) + 1e-12
+
+
 def build_throughput(
     mesh: Mesh,
     sigma_a: Tensor | float,
@@ -327,7 +350,8 @@ def build_throughput(
     The pattern stores distances and source areas, not values: evaluate it with :func:`throughput_values` for
     any (learnable) profile. Entries beyond ``cutoff_mm`` (the largest kept distance) were dropped for the
     material given here, so a pattern reused with a wider profile misses that tail. Built blockwise over source
-    rows (never an ``N x N`` matrix when N is large), distances in float64.
+    rows (never an ``N x N`` matrix when N is large), distances in float64. When the largest kept distance is
+    short against the mesh, the candidate pairs come from a k-d tree (scipy) and the build is O(nnz).
 
     Args:
         mesh: Vertices in mm.
@@ -381,20 +405,41 @@ def build_throughput(
     v = mesh.vertices.detach().to(torch.float64)
     va = mesh.vertex_areas.detach().to(torch.float64)
     thr = _absolute_threshold(va, sa, ss, et, threshold, relative)
-    all_cols = torch.arange(n, device=v.device)
+    radius = _keep_radius(float(va.max()), sa, ss, et, thr)
+    diagonal = float((v.amax(0) - v.amin(0)).norm())
     rows, cols, dists = [], [], []
-    starts = range(0, n, block_rows)
-    for lo in tqdm(starts, desc="throughput", unit="block", disable=not progress):
-        hi = min(n, lo + block_rows)
-        d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
-        f = va[lo:hi, None] * _max_rd(d, sa, ss, et)
-        keep = f >= thr
-        if zero_diagonal:
-            keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
-        r_idx, c_idx = keep.nonzero(as_tuple=True)
-        rows.append(r_idx + lo)
-        cols.append(c_idx)
-        dists.append(d[r_idx, c_idx])
+    if radius < 0.5 * diagonal:
+        # R_d decreases with r: every kept pair lies within ``radius`` (set by the largest vertex area), so a
+        # k-d tree lists the candidates in O(nnz) instead of testing all N^2 pairs; the test below is the same.
+        pairs = torch.from_numpy(cKDTree(v.cpu().numpy()).query_pairs(radius, output_type="ndarray")).to(v.device)
+        self_pairs = torch.arange(n, device=v.device)
+        cand_r = torch.cat([pairs[:, 0], pairs[:, 1], self_pairs])
+        cand_c = torch.cat([pairs[:, 1], pairs[:, 0], self_pairs])
+        block = max(1, int(float(max_memory_mb) * 2**20 / (8.0 * (8 + 2 * channels))))
+        for lo in tqdm(range(0, cand_r.numel(), block), desc="throughput", unit="block", disable=not progress):
+            r_idx, c_idx = cand_r[lo:lo + block], cand_c[lo:lo + block]
+            d = _distance(v[r_idx], v[c_idx])
+            keep = va[r_idx] * _max_rd(d, sa, ss, et) >= thr
+            if zero_diagonal:
+                keep &= r_idx != c_idx
+            rows.append(r_idx[keep])
+            cols.append(c_idx[keep])
+            dists.append(d[keep])
+        order = torch.argsort(torch.cat(rows) * n + torch.cat(cols))
+        rows, cols, dists = [torch.cat(rows)[order]], [torch.cat(cols)[order]], [torch.cat(dists)[order]]
+    else:
+        all_cols = torch.arange(n, device=v.device)
+        for lo in tqdm(range(0, n, block_rows), desc="throughput", unit="block", disable=not progress):
+            hi = min(n, lo + block_rows)
+            d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
+            f = va[lo:hi, None] * _max_rd(d, sa, ss, et)
+            keep = f >= thr
+            if zero_diagonal:
+                keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
+            r_idx, c_idx = keep.nonzero(as_tuple=True)
+            rows.append(r_idx + lo)
+            cols.append(c_idx)
+            dists.append(d[r_idx, c_idx])
     rows_t = torch.cat(rows)
     cols_t = torch.cat(cols)
     dist_t = torch.cat(dists)
@@ -594,3 +639,56 @@ def blending_weights(
     dtype = atlas.position.dtype
     weights_img = weights.view(height, width, 3, channels).permute(3, 2, 0, 1).to(dtype).contiguous()
     return BlendWeights(weights_img, correction.permute(4, 0, 1, 2, 3).to(dtype).contiguous())
+
+
+#: Fraction of the atlas square that charts cover, used by :func:`plan_kernel_size` to estimate the texel size
+#: before the atlas exists (xatlas packs 0.36-0.52 of the square for the meshes measured in benchmarks/).
+ATLAS_UTILIZATION = 0.45
+
+
+def plan_kernel_size(mesh: Mesh, resolution: int, *, reach: float = 0.7, k_min: int = 5, k_max: int = 11,
+                     utilization: float = ATLAS_UTILIZATION) -> int:
+    r"""Local kernel size for Lensch's blending: the kernel must reach towards the neighbouring vertices.
+
+    The blended method hands the near field to the k x k texel kernel and everything beyond to the vertex
+    throughput; the §5.4 least-squares fit on the kernel's ring joins the two. When the kernel's half-width is
+    small against the vertex spacing the global term has to carry the near field it cannot resolve, and the
+    error grows with the profile's sharpness (benchmarks/results/lensch.md: spot, skin1, 0.74 mm edges,
+    atlas 512: 4.6% at k = 7, 3.0% at k = 9, 2.6% at k = 11). The rule: the smallest odd k whose half-width
+    ``(k // 2) * texel`` is about ``reach`` times the median edge length, clamped to ``[k_min, k_max]``; the
+    texel size is estimated from the mesh area as :math:`\sqrt{A / (u\,\mathrm{resolution}^2)}`.
+
+    Args:
+        mesh: the surface (mm).
+        resolution: atlas resolution (texels per side).
+        reach: kernel half-width over the median edge length.
+        k_min: smallest kernel (odd).
+        k_max: largest kernel (odd); the blending precompute grows with :math:`k^2`.
+        utilization: assumed fraction of the atlas covered by charts.
+
+    Returns:
+        An odd kernel size.
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> plan_kernel_size(sphere(10.0, 3), 512) in (5, 7, 9, 11)
+        True
+    """
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh: expected a torchsss.geometry.Mesh, got {type(mesh).__name__}")
+    if isinstance(resolution, bool) or not isinstance(resolution, numbers.Integral) or resolution < 1:
+        raise ValueError(f"resolution: expected an int >= 1, got {resolution!r}")
+    k_min, k_max = _check_kernel_size(k_min), _check_kernel_size(k_max)
+    if k_min > k_max:
+        raise ValueError(f"k_min, k_max: expected k_min <= k_max, got {k_min} > {k_max}")
+    if not (0.0 < float(reach) < math.inf):
+        raise ValueError(f"reach: expected a positive number, got {reach!r}")
+    if not (0.0 < float(utilization) <= 1.0):
+        raise ValueError(f"utilization: expected a number in (0, 1], got {utilization!r}")
+    f = mesh.faces
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    v = mesh.vertices.detach().to(torch.float64)
+    edge = float((v[edges[:, 0]] - v[edges[:, 1]]).norm(dim=1).median())
+    texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
+    half = round(float(reach) * edge / texel) if texel > 0 else k_min // 2
+    return int(min(max(2 * half + 1, k_min), k_max))

@@ -18,10 +18,10 @@ from torchsss._checks import as_float_tensor, check_nonnegative, check_positive,
 from torchsss.physics.budget import r_max as _r_max
 from torchsss.physics.burley import burley_params_from_dipole, burley_rd
 from torchsss.physics.dipole import dipole_rd, total_diffuse_reflectance
-from torchsss.physics.lut import ProfileTable, build_profile_table
+from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table
 from torchsss.physics.materials import preset
 
-__all__ = ["POSITIVE_FLOOR", "BurleyMaterial", "DipoleMaterial"]
+__all__ = ["POSITIVE_FLOOR", "BurleyMaterial", "DipoleMaterial", "TabulatedMaterial"]
 
 #: Smallest value a softplus-parameterised coefficient is initialised to. A coefficient given as exactly 0
 #: (e.g. spectralon's absorption) becomes 1e-12 mm^-1 (an extinction length of 1e9 km), indistinguishable in
@@ -254,3 +254,76 @@ class BurleyMaterial(nn.Module):
     def total_diffuse_reflectance(self) -> Tensor:
         """The integral of the profile over the plane, which is the albedo by construction."""
         return self.albedo
+
+
+class TabulatedMaterial(nn.Module):
+    """A dipole material evaluated through a lookup table: the opt-in speed path of DESIGN.md §3.
+
+    Each call samples the wrapped material at ``size`` nodes over :math:`[0, r_{max}(\\epsilon)]` (the table
+    keeps the autograd graph, so the wrapped material's parameters still receive gradients) and interpolates
+    linearly (:func:`torchsss.physics.lookup_profile_table`); beyond :math:`r_{max}` the profile is 0, which
+    drops a fraction ``eps`` of the energy. The rendering modules cache what they evaluate while the material is
+    unchanged, so the table is rebuilt only after a material edit, where it replaces one dipole evaluation per
+    kernel tap and throughput entry by a gather and a lerp.
+
+    ``sigma_a``, ``sigma_s_prime`` and ``eta`` are those of the wrapped material, so closed-form terms (the
+    disk self term of the Lensch modules) stay exact.
+
+    Args:
+        material: the :class:`DipoleMaterial` to tabulate (a submodule: its parameters are this module's).
+        size: nodes per channel (>= 2).
+        eps: tail fraction beyond the table's range, see :func:`torchsss.physics.r_max`.
+        warp: node spacing, ``"sqrt"`` (default, dense near r = 0) or ``"linear"``.
+
+    Examples:
+        >>> m = TabulatedMaterial(DipoleMaterial.from_preset("skin1"), size=2048)
+        >>> r = torch.tensor([[0.5], [2.0]])
+        >>> bool(((m(r) - m.material(r)).abs() / m.material(r)).max() < 1e-3)
+        True
+    """
+
+    def __init__(self, material: DipoleMaterial, size: int = 1024, eps: float = 1e-4, warp: str = "sqrt") -> None:
+        super().__init__()
+        if not isinstance(material, DipoleMaterial):
+            raise TypeError(f"material: expected a DipoleMaterial, got {type(material).__name__}")
+        if isinstance(size, bool) or not isinstance(size, int) or size < 2:
+            raise ValueError(f"size: expected an int >= 2, got {size!r}")
+        self.material = material
+        self.size = size
+        self.eps = float(eps)
+        self.warp = warp
+        self.table()  # validates eps and warp now rather than at the first call
+
+    @property
+    def sigma_a(self) -> Tensor:
+        """Absorption coefficient of the wrapped material (mm^-1)."""
+        return self.material.sigma_a
+
+    @property
+    def sigma_s_prime(self) -> Tensor:
+        """Reduced scattering coefficient of the wrapped material (mm^-1)."""
+        return self.material.sigma_s_prime
+
+    @property
+    def eta(self) -> Tensor:
+        """Relative index of refraction of the wrapped material."""
+        return self.material.eta
+
+    def table(self) -> ProfileTable:
+        """The current table (per-channel ranges; values keep gradients)."""
+        return self.material.table(size=self.size, eps=self.eps, warp=self.warp, shared_range=False)
+
+    def forward(
+        self, r: Tensor, distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None
+    ) -> Tensor:
+        """:math:`M_i R_d(r M_d)` from the table; ``r`` :math:`(..., 1)` or :math:`(..., C)` mm -> :math:`(..., C)`."""
+        if distance_scale is not None:
+            r = r * distance_scale
+        out = lookup_profile_table(r, self.table())
+        if irradiance_scale is not None:
+            out = out * irradiance_scale
+        return out
+
+    def total_diffuse_reflectance(self) -> Tensor:
+        """Closed-form albedo of the wrapped material."""
+        return self.material.total_diffuse_reflectance()

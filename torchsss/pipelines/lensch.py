@@ -23,6 +23,7 @@ from torchsss.geometry.lensch import (
     blending_weights,
     build_throughput,
     local_kernel_geometry,
+    plan_kernel_size,
     vertex_weights,
 )
 from torchsss.geometry.lights import Light, surface_irradiance
@@ -48,11 +49,19 @@ class LenschScene:
     stats: dict
 
 
-def build_lensch(mesh: Mesh, material: Material, *, resolution: int = 512, kernel_size: int = 7,
+def build_lensch(mesh: Mesh, material: Material, *, resolution: int = 512, kernel_size: int | None = None,
                  threshold: float = 1e-5, relative: bool = True, blend: bool = True,
                  progress: bool = False) -> LenschScene:
-    """Precompute everything the per-frame Lensch module needs (see the module docstring)."""
+    """Precompute everything the per-frame Lensch module needs (see the module docstring).
+
+    ``kernel_size=None`` (default) plans it from the vertex spacing and the texel size
+    (:func:`~torchsss.geometry.lensch.plan_kernel_size`: 7 for Lensch's meshes, up to 11 for coarse ones);
+    without blending the kernel only has to hold the near field and 7 is used.
+    """
     stats: dict = {}
+    if kernel_size is None:
+        kernel_size = plan_kernel_size(mesh, resolution) if blend else 7
+    stats["kernel_size"] = kernel_size
     t0 = time.perf_counter()
     atlas = build_atlas(mesh, resolution, kernel_size=kernel_size, progress=progress)
     stats["t_atlas_s"] = time.perf_counter() - t0
@@ -100,7 +109,7 @@ def _camera_uv(mesh: Mesh, atlas: Atlas, camera: Camera) -> tuple[Tensor, Tensor
 
 
 def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *,
-                  resolution: int = 512, kernel_size: int = 7, threshold: float = 1e-5, relative: bool = True,
+                  resolution: int = 512, kernel_size: int | None = None, threshold: float = 1e-5, relative: bool = True,
                   blend: bool = True, dtype: torch.dtype = torch.float32, progress: bool = False,
                   prebuilt: LenschScene | None = None, specular: bool = False,
                   roughness: float = 0.3) -> RenderResult:
@@ -130,6 +139,7 @@ def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camer
     t3 = time.perf_counter()
     stats = dict(built.stats)
     stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=t3 - t2, t_frame_s=t3 - t0,
-                 atlas_resolution=built.atlas.resolution, kernel_size=kernel_size, threshold=threshold,
+                 atlas_resolution=built.atlas.resolution, kernel_size=built.module.local.kernel_size,
+                 threshold=threshold,
                  blend=blend)
     return RenderResult(radiance, b, mask, stats)
