@@ -157,7 +157,9 @@ def test_hybrid_beats_pure_sampling_for_a_dense_material_on_a_plane(lit_plane):
     atlas, mat, e, rec, uv = lit_plane
     ref = _atlas_sum(atlas, e, rec, mat)
     pure = ImportanceSampledTranslucency.from_atlas(atlas, mat)
-    hy = HybridTranslucency.from_atlas(atlas, mat)
+    # on a plane the flat-surface local filter is exact, so a long local reach (small c) pays off; the library
+    # default c = 0.1 is chosen for curved objects (benchmarks/results/chang.md)
+    hy = HybridTranslucency.from_atlas(atlas, mat, c=0.01)
     g = torch.Generator().manual_seed(2)
     ep, eh = [], []
     with torch.no_grad():

@@ -195,8 +195,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--samples", type=int, default=4096,
                        help="icdf/hybrid: importance samples N per frame (default 4096)")
     p_ren.add_argument("--seed", type=int, default=0, help="icdf/hybrid: seed of the scrambled Sobol uniforms")
-    p_ren.add_argument("--split-c", type=float, default=0.01,
-                       help="hybrid: Chang's bound c of the local/global split radius R_p (default 0.01)")
+    p_ren.add_argument("--split-c", type=float, default=0.1,
+                       help="hybrid: bound c of the split radius R_p (default 0.1; benchmarks/results/chang.md)")
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
     p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")

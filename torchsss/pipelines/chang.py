@@ -92,7 +92,7 @@ def build_icdf(mesh: Mesh, material: Material, *, atlas_resolution: int = 512, k
 
 
 def build_hybrid(mesh: Mesh, material: Material, *, atlas_resolution: int = 512, kernel_size: int = 7,
-                 rings: int = 4, per_ring: int = 8, c: float = 0.01, k: float = 1.5, local_eps: float = 1e-3,
+                 rings: int = 4, per_ring: int = 8, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
                  levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False) -> ChangScene:
     """Atlas + :class:`HybridTranslucency` for ``mesh`` in ``material``.
 
@@ -173,7 +173,7 @@ def render_icdf(mesh: Mesh, material: Material, lights: Sequence[Light], camera:
 
 def render_hybrid(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *, samples: int = 1024,
                   atlas_resolution: int = 512, seed: int = 0, sobol: bool = True, dtype: torch.dtype = torch.float32,
-                  rings: int = 4, per_ring: int = 8, c: float = 0.01, k: float = 1.5, local_eps: float = 1e-3,
+                  rings: int = 4, per_ring: int = 8, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
                   levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False,
                   prebuilt: ChangScene | None = None, shadow_resolution: int = 1024, specular: bool = False,
                 roughness: float = 0.3) -> RenderResult:
