@@ -37,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-from torchsss.bench import time_callable, write_results
+from torchsss.bench import compare, time_callable, write_results
 from torchsss.geometry.atlas import build_atlas
 from torchsss.geometry.lensch import (
     blending_weights,
@@ -64,6 +64,8 @@ DEFAULTS = {"atlas": 512, "kernel": 7, "threshold": 1e-5, "blend": True, "self_t
 SWEEP_COLUMNS = ["scene", "sweep", "atlas", "kernel", "threshold", "blend", "self_term", "profile", "rel_rmse",
                  "rel_rmse_rgb", "t_precompute_s", "t_blending_s", "t_frame_ms", "t_frame_iqr_ms", "t_material_ms",
                  "t_irradiance_ms", "nnz"]
+MATERIAL_COLUMNS = ["scene", "profile", "atlas", "kernel", "taps", "nnz", "kernel_rel_error", "candidate_median_s",
+                    "baseline_median_s", "speedup"]
 PLANE_COLUMNS = ["material", "atlas", "kernel", "blend", "vertex_spacing_mm", "square_mm", "receivers", "rel_rmse_all",
                  "rel_rmse_edges", "rel_rmse_seam", "rel_rmse_rest", "t_precompute_s", "t_reference_s"]
 SCALING_COLUMNS = ["faces", "vertices", "material", "threshold", "nnz", "cutoff_mm", "t_atlas_s", "t_kernels_s",
@@ -140,6 +142,31 @@ def material_edit(module: LenschTranslucency) -> None:
     """Re-evaluate every kernel tap and throughput value, as after a material edit."""
     module.local.kernels()
     module.global_response.throughput_values()
+
+
+def material_edit_timing(label: str, mesh, material: Material, atlas_res: int = 512, k: int = 7) -> list[dict]:
+    """A material edit (every kernel tap and throughput value re-evaluated): lookup table vs analytic dipole.
+
+    Interleaved samples in one process (``torchsss.bench.compare``), so the ratio holds on a loaded machine.
+    Blending is off (it does not change the number of profile evaluations).
+    """
+    builder = Builder(mesh, material)
+    analytic = builder.build(atlas_res, k, 1e-5, False).module
+    records = []
+    for size in (256, 1024, 4096):
+        lut = builder.build(atlas_res, k, 1e-5, False, profile=f"lut{size}").module
+        with torch.no_grad():
+            err = float((lut.local.kernels() - analytic.local.kernels()).norm() / analytic.local.kernels().norm())
+        rec = compare(functools.partial(material_edit, lut), functools.partial(material_edit, analytic),
+                      name=f"{label} lut{size}", repeats=5, warmup=1)
+        rec.update(benchmark="material_edit", scene=label, profile=f"lut{size}", atlas=atlas_res, kernel=k,
+                   kernel_rel_error=err, taps=int(analytic.local.distance.numel()),
+                   nnz=int(analytic.global_response.distance.numel()))
+        records.append(rec)
+        print(f"[{label}] material edit, lut{size}: {1e3 * rec['candidate_median_s']:.0f} ms vs analytic "
+              f"{1e3 * rec['baseline_median_s']:.0f} ms (speed-up {rec['speedup']:.2f}), kernel error {err:.1e}",
+              flush=True)
+    return records
 
 
 def run_scene(label, mesh, material, lights, camera, configs, *, spacing_mm=None, raytrace=True) -> list[dict]:
@@ -351,11 +378,12 @@ def main(argv=None) -> int:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     name = "lensch_quick" if args.quick else "lensch"
-    columns = {"sweep": SWEEP_COLUMNS, "scaling": SCALING_COLUMNS, "plane": PLANE_COLUMNS}
+    columns = {"sweep": SWEEP_COLUMNS, "scaling": SCALING_COLUMNS, "plane": PLANE_COLUMNS,
+               "material_edit": MATERIAL_COLUMNS}
     records: list[dict] = []
 
     key_fields = ("benchmark", "scene", "sweep", "atlas", "kernel", "threshold", "blend", "self_term", "profile",
-                  "faces", "material")
+                  "faces", "material", "square_mm")
     previous: list[dict] = []
     if args.append and (args.out_dir / f"{name}.json").is_file():
         previous = json.loads((args.out_dir / f"{name}.json").read_text())["records"]
@@ -412,6 +440,9 @@ def main(argv=None) -> int:
         ("planned", {"kernel": "auto"}),
     ]
     cam = dataclasses.replace(spot.camera, width=96, height=96)
+    if wanted is not None and "material_edit" in wanted:
+        records += material_edit_timing("spot", spot.load_mesh(), spot.material)
+        save()
     if not args.skip_spot:
         records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, pick(spot_configs))
         save()

@@ -34,3 +34,21 @@ def test_bench_lensch_quick_smoke(tmp_path):
     # a lower threshold keeps more throughput entries
     by_thr = {r["threshold"]: r for r in sweep}
     assert by_thr[1e-3]["nnz"] > by_thr[1e-2]["nnz"]
+
+
+def test_checker_plane_scene_has_a_seam_and_lensch_follows_the_reference():
+    """The plane-and-checkerboard scene (Lensch Fig. 6) at a small size: two charts, errors finite and bounded."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import bench_lensch
+    finally:
+        sys.path.pop(0)
+    mesh = bench_lensch.checker_plane(12.0, 12)
+    u = mesh.face_uvs[..., 0].mean(1)
+    left = mesh.vertices[mesh.faces][:, :, 0].mean(1) < 0
+    assert bool((u[left] < 0.5).all()) and bool((u[~left] > 0.5).all())  # the seam x = 0 splits the charts
+    rec = bench_lensch.run_plane("skin1", size_mm=12.0, segments=12, square_mm=3.0, atlas_res=128, kernel=7,
+                                 spacing_mm=0.5)
+    for key in ("rel_rmse_all", "rel_rmse_edges", "rel_rmse_seam", "rel_rmse_rest"):
+        assert math.isfinite(rec[key]) and 0 <= rec[key] < 0.25, (key, rec)
+    assert rec["receivers"] > 100

@@ -17,6 +17,7 @@ from torchsss.geometry.lensch import (
     build_throughput,
     local_kernel_geometry,
     plan_kernel_size,
+    plan_lensch,
     throughput_values,
     vertex_weights,
 )
@@ -412,3 +413,43 @@ def test_throughput_kdtree_path_matches_brute_force(threshold):
         rows, cols = keep.nonzero(as_tuple=True)
         assert torch.equal(tp.rows, rows) and torch.equal(tp.cols, cols)
         torch.testing.assert_close(tp.distance, d[rows, cols], rtol=1e-12, atol=1e-12)
+
+
+def test_blending_band_fit_reduces_the_energy_overshoot():
+    """Lensch's ring fit spreads the ring's (high) level over the vertex hats: the impulse response carries too
+    much energy. Fitting on a band out towards the neighbouring vertices (fit_radius) brings it closer to the
+    exact discrete energy sum_x A_x A_o R_d(|x - x_o|)."""
+    mesh = plane(12.0, 12.0, 12, dtype=torch.float64)  # 1 mm vertex spacing
+    atlas = build_atlas(mesh, 128, kernel_size=5)  # ~0.1 mm texels
+    k = 5
+    geo = local_kernel_geometry(atlas, k)
+    vw = vertex_weights(mesh, atlas)
+    tp0 = build_throughput(mesh, *SKIN1, zero_diagonal=True)
+    ring = blending_weights(mesh, atlas, *SKIN1, kernel_size=k)
+    same = blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=k // 2 + 1)
+    assert torch.equal(ring.weights, same.weights) and torch.equal(ring.kernel_correction, same.kernel_correction)
+    band = blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=8)
+    area = (atlas.area * atlas.valid_mask)[0, 0, :, :, None]
+    pos = atlas.position[0].permute(1, 2, 0)
+    chart = atlas.chart_mask[0, 0].nonzero()
+    o = tuple(chart[torch.argmin((pos[chart[:, 0], chart[:, 1]]).norm(dim=-1))].tolist())  # texel at the centre
+    exact = (area * dipole_rd((pos - pos[o]).norm(dim=-1)[..., None], *SKIN1)).sum((0, 1)) * area[o]
+    over = []
+    for bw in (ring, band):
+        blended, _, _ = _impulse_response(mesh, atlas, SKIN1, bw, geo, vw, tp0, o)
+        over.append(((blended * area).sum((0, 1)) / exact - 1.0).abs())
+    assert bool((over[1] < over[0]).all()), over
+    with pytest.raises(ValueError, match="fit_radius"):
+        blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=2)
+    with pytest.raises(TypeError, match="fit_radius"):
+        blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=4.0)
+
+
+def test_plan_lensch_blends_only_when_the_kernel_reaches_the_vertices():
+    # fine mesh against the texels: the planned kernel reaches > half an edge -> blend with the planned k
+    fine = sphere(10.0, 4)
+    k, blend = plan_lensch(fine, 512)
+    assert blend and k == plan_kernel_size(fine, 512)
+    # coarse mesh (edges ~10x the texels times 11): no kernel up to 11 reaches half an edge -> Lensch's k 7, no blend
+    coarse = plane(30.0, 30.0, 6)
+    assert plan_lensch(coarse, 1024) == (7, False)

@@ -191,7 +191,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        help="lensch: local kernel size k (odd); default: planned from the vertex spacing (5-11)")
     p_ren.add_argument("--threshold", type=float, default=1e-5,
                        help="lensch: throughput threshold relative to the largest entry")
-    p_ren.add_argument("--no-blend", action="store_true", help="lensch: skip the local/global blending of §5.4")
+    p_ren.add_argument("--blend", choices=["auto", "on", "off"], default="auto",
+                       help="lensch: the local/global blending of §5.4 (auto: planned from the vertex spacing)")
+    p_ren.add_argument("--no-blend", action="store_true", help="lensch: same as --blend off")
     p_ren.add_argument("--samples", type=int, default=4096,
                        help="icdf/hybrid: importance samples N per frame (default 4096)")
     p_ren.add_argument("--seed", type=int, default=0, help="icdf/hybrid: seed of the scrambled Sobol uniforms")
@@ -214,7 +216,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 options["spacing_mm"] = args.spacing
         elif args.method == "lensch":
             options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
-                           threshold=args.threshold, blend=not args.no_blend)
+                           threshold=args.threshold,
+                           blend=False if args.no_blend else {"auto": None, "on": True, "off": False}[args.blend])
         elif args.method in ("icdf", "hybrid"):
             options.update(atlas_resolution=args.atlas_resolution, samples=args.samples, seed=args.seed)
             if args.method == "hybrid":

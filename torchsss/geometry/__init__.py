@@ -17,6 +17,7 @@ from torchsss.geometry.lensch import (
     build_throughput,
     local_kernel_geometry,
     plan_kernel_size,
+    plan_lensch,
     throughput_values,
     vertex_weights,
 )
@@ -79,6 +80,7 @@ __all__ = [
     "perspective",
     "pixel_centers_ndc",
     "plan_kernel_size",
+    "plan_lensch",
     "plane",
     "point_inside",
     "rasterize",

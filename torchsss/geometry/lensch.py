@@ -46,6 +46,7 @@ __all__ = [
     "build_throughput",
     "local_kernel_geometry",
     "plan_kernel_size",
+    "plan_lensch",
     "throughput_values",
     "vertex_weights",
 ]
@@ -509,6 +510,7 @@ def blending_weights(
     threshold: float = 1e-5,
     relative: bool = True,
     chunk_texels: int = 1024,
+    fit_radius: int | None = None,
     progress: bool = False,
 ) -> BlendWeights:
     """Blend the local kernels with the global vertex response (Lensch §5.4), per chart texel, per channel.
@@ -543,6 +545,8 @@ def blending_weights(
         threshold: Throughput threshold, as in :func:`build_throughput`.
         relative: As in :func:`build_throughput`.
         chunk_texels: Source texels per chunk (memory ~ 100 kB each).
+        fit_radius: Fit the weights on the band of texels with ``k//2 < Chebyshev distance <= fit_radius``
+            instead of Lensch's single ring (``None``: ``k//2 + 1``, the ring).
         progress: Show a tqdm bar over the chunks.
 
     Returns:
@@ -581,7 +585,14 @@ def blending_weights(
 
     height, width = atlas.shape
     r = k // 2
-    ring_r = r + 1
+    if fit_radius is None:
+        ring_r = r + 1
+    elif isinstance(fit_radius, bool) or not isinstance(fit_radius, numbers.Integral):
+        raise TypeError(f"fit_radius: expected an int or None, got {type(fit_radius).__name__}")
+    elif fit_radius < r + 1:
+        raise ValueError(f"fit_radius: expected an int >= kernel_size // 2 + 1 = {r + 1}, got {fit_radius}")
+    else:
+        ring_r = int(fit_radius)
     ids = vw.vertex_ids[0].permute(1, 2, 0).reshape(-1, 3)  # (HW, 3)
     bary = vw.bary[0].permute(1, 2, 0).reshape(-1, 3).to(f64)
     dual = vw.dual[0].permute(1, 2, 0).reshape(-1, 3).to(f64)
@@ -594,7 +605,7 @@ def blending_weights(
     dy, dx = torch.meshgrid(span, span, indexing="ij")
     dy, dx = dy.reshape(-1), dx.reshape(-1)  # (P,), P = (k+2)^2
     cheb = torch.maximum(dy.abs(), dx.abs())
-    on_ring = cheb == ring_r
+    on_ring = cheb > r  # the ring (Lensch) or, with fit_radius, the band from the ring out to fit_radius
     inner = cheb <= r
 
     weights = torch.zeros(height * width, 3, channels, dtype=f64, device=device)
@@ -685,10 +696,46 @@ def plan_kernel_size(mesh: Mesh, resolution: int, *, reach: float = 0.7, k_min: 
         raise ValueError(f"reach: expected a positive number, got {reach!r}")
     if not (0.0 < float(utilization) <= 1.0):
         raise ValueError(f"utilization: expected a number in (0, 1], got {utilization!r}")
-    f = mesh.faces
-    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    v = mesh.vertices.detach().to(torch.float64)
-    edge = float((v[edges[:, 0]] - v[edges[:, 1]]).norm(dim=1).median())
+    edge = _median_edge(mesh)
     texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
     half = round(float(reach) * edge / texel) if texel > 0 else k_min // 2
     return int(min(max(2 * half + 1, k_min), k_max))
+
+
+#: Smallest kernel reach (half-width over the median edge) at which blending pays off; measured in
+#: benchmarks/results/lensch.md: blending won at reach 0.55-0.72 (bunny 9.4% -> 2.3%, spot 2.6%) and lost at
+#: 0.21-0.41 (checker plane 4.6% -> 30%, spot k 7 3.4% -> 4.6%).
+BLEND_MIN_REACH = 0.5
+
+
+def _median_edge(mesh: Mesh) -> float:
+    f = mesh.faces
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    v = mesh.vertices.detach().to(torch.float64)
+    return float((v[edges[:, 0]] - v[edges[:, 1]]).norm(dim=1).median())
+
+
+def plan_lensch(mesh: Mesh, resolution: int, *, utilization: float = ATLAS_UTILIZATION) -> tuple[int, bool]:
+    """Kernel size and whether to blend, for a mesh and an atlas resolution (the pipeline's defaults).
+
+    The kernel comes from :func:`plan_kernel_size`. Blending (Lensch §5.4) fits the direct term on the kernel's
+    ring and spreads it over the vertex hats; when even the planned kernel reaches less than
+    :data:`BLEND_MIN_REACH` median edges the fitted level is that of the profile's peak and the blended
+    response overshoots badly, so the unblended sum with Lensch's 7 x 7 kernel is returned instead.
+
+    Returns:
+        ``(kernel_size, blend)``.
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> k, blend = plan_lensch(sphere(10.0, 3), 512)
+        >>> k % 2, isinstance(blend, bool)
+        (1, True)
+    """
+    k = plan_kernel_size(mesh, resolution, utilization=utilization)
+    texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
+    edge = _median_edge(mesh)
+    reach = (k // 2) * texel / edge if edge > 0 else math.inf
+    if reach >= BLEND_MIN_REACH:
+        return k, True
+    return 7, False

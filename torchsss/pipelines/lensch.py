@@ -24,6 +24,7 @@ from torchsss.geometry.lensch import (
     build_throughput,
     local_kernel_geometry,
     plan_kernel_size,
+    plan_lensch,
     vertex_weights,
 )
 from torchsss.geometry.lights import Light, surface_irradiance
@@ -50,18 +51,23 @@ class LenschScene:
 
 
 def build_lensch(mesh: Mesh, material: Material, *, resolution: int = 512, kernel_size: int | None = None,
-                 threshold: float = 1e-5, relative: bool = True, blend: bool = True,
+                 threshold: float = 1e-5, relative: bool = True, blend: bool | None = None,
                  progress: bool = False) -> LenschScene:
     """Precompute everything the per-frame Lensch module needs (see the module docstring).
 
-    ``kernel_size=None`` (default) plans it from the vertex spacing and the texel size
-    (:func:`~torchsss.geometry.lensch.plan_kernel_size`: 7 for Lensch's meshes, up to 11 for coarse ones);
-    without blending the kernel only has to hold the near field and 7 is used.
+    ``kernel_size=None`` and ``blend=None`` (defaults) are planned from the vertex spacing and the texel size
+    (:func:`~torchsss.geometry.lensch.plan_lensch`: blending with a kernel that reaches ~0.7 median edges, 7 for
+    Lensch's meshes and up to 11 for coarse ones; no blending, k = 7, when no kernel up to 11 reaches half an
+    edge). Without blending the kernel only has to hold the near field and 7 is used.
     """
     stats: dict = {}
+    if blend is None:
+        planned_k, blend = plan_lensch(mesh, resolution)
+        if kernel_size is None:
+            kernel_size = planned_k
     if kernel_size is None:
         kernel_size = plan_kernel_size(mesh, resolution) if blend else 7
-    stats["kernel_size"] = kernel_size
+    stats.update(kernel_size=kernel_size, blend=blend)
     t0 = time.perf_counter()
     atlas = build_atlas(mesh, resolution, kernel_size=kernel_size, progress=progress)
     stats["t_atlas_s"] = time.perf_counter() - t0
@@ -110,7 +116,7 @@ def _camera_uv(mesh: Mesh, atlas: Atlas, camera: Camera) -> tuple[Tensor, Tensor
 
 def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *,
                   resolution: int = 512, kernel_size: int | None = None, threshold: float = 1e-5, relative: bool = True,
-                  blend: bool = True, dtype: torch.dtype = torch.float32, progress: bool = False,
+                  blend: bool | None = None, dtype: torch.dtype = torch.float32, progress: bool = False,
                   prebuilt: LenschScene | None = None, specular: bool = False,
                   roughness: float = 0.3) -> RenderResult:
     """Render a camera image with the Lensch method; ``stats`` separates precompute and per-frame time.
@@ -140,6 +146,5 @@ def render_lensch(mesh: Mesh, material: Material, lights: Sequence[Light], camer
     stats = dict(built.stats)
     stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=t3 - t2, t_frame_s=t3 - t0,
                  atlas_resolution=built.atlas.resolution, kernel_size=built.module.local.kernel_size,
-                 threshold=threshold,
-                 blend=blend)
+                 threshold=threshold, blend=built.module.direct is not None)
     return RenderResult(radiance, b, mask, stats)
