@@ -25,14 +25,13 @@ from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
-from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
 from torchsss.modules.lensch import LenschTranslucency
 from torchsss.modules.material import DipoleMaterial
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS
 from torchsss.pipelines.lensch import _camera_uv, irradiance_atlas
 from torchsss.pipelines.reference import RenderResult
-from torchsss.pipelines.specular import specular_radiance
+from torchsss.pipelines.specular import shadow_mapped_specular
 from torchsss.scene import Material
 
 __all__ = ["ChangScene", "build_hybrid", "build_icdf", "render_hybrid", "render_icdf", "sample_uniforms"]
@@ -139,10 +138,7 @@ def _render(built: ChangScene, mesh: Mesh, material: Material, lights: Sequence[
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     radiance = LenschTranslucency.radiance(radiosity, cos_o, material.eta) * gbuf.mask
     if specular:
-        pix = gbuf.position.flatten(2).transpose(1, 2)
-        pix_n = gbuf.normal.flatten(2).transpose(1, 2)
-        vis = [shadow_visibility(build_shadow_map(mesh, light, 1024), pix, pix_n, light) for light in lights]
-        radiance = radiance + specular_radiance(gbuf, lights, material.eta, roughness=roughness, visibility=vis)
+        radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, material.eta, roughness=roughness)
     t3 = time.perf_counter()
     stats = dict(built.stats)
     stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=t3 - t2, t_frame_s=t3 - t0,

@@ -23,9 +23,11 @@ from torch import Tensor
 
 from torchsss.geometry.gbuffer import GBuffer
 from torchsss.geometry.lights import Light, incident_light
+from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.physics.fresnel import fresnel_reflectance
 
-__all__ = ["specular_radiance"]
+__all__ = ["shadow_mapped_specular", "specular_radiance"]
 
 
 def specular_radiance(gbuffer: GBuffer, lights: Sequence[Light], eta: float, *, roughness: float = 0.3,
@@ -75,3 +77,16 @@ def specular_radiance(gbuffer: GBuffer, lights: Sequence[Light], eta: float, *, 
             term = term * vis.unsqueeze(-1)
         total = total + term
     return total.transpose(1, 2).reshape(b, 3, h, w) * gbuffer.mask
+
+
+def shadow_mapped_specular(mesh: Mesh, gbuffer: GBuffer, lights: Sequence[Light], eta: float, *,
+                           roughness: float = 0.3, shadow_resolution: int = 1024) -> Tensor:
+    """:func:`specular_radiance` at the camera pixels with shadow-mapped visibility (the fast renderers' choice).
+
+    Returns:
+        :math:`(1, 3, H, W)` specular radiance.
+    """
+    pix = gbuffer.position.flatten(2).transpose(1, 2)
+    pix_n = gbuffer.normal.flatten(2).transpose(1, 2)
+    vis = [shadow_visibility(build_shadow_map(mesh, light, shadow_resolution), pix, pix_n, light) for light in lights]
+    return specular_radiance(gbuffer, lights, eta, roughness=roughness, visibility=vis)
