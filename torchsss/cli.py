@@ -197,6 +197,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--samples", type=int, default=4096,
                        help="icdf/hybrid: importance samples N per frame (default 4096)")
     p_ren.add_argument("--seed", type=int, default=0, help="icdf/hybrid: seed of the scrambled Sobol uniforms")
+    p_ren.add_argument("--caustic-grid", type=int, default=None,
+                       help="caustics: light-view grid size (default: the scene's caustics.grid)")
     p_ren.add_argument("--split-c", type=float, default=0.1,
                        help="hybrid: bound c of the split radius R_p (default 0.1; benchmarks/results/chang.md)")
     p_ren.add_argument("--specular", action="store_true",
@@ -218,6 +220,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
                            threshold=args.threshold,
                            blend=False if args.no_blend else {"auto": None, "on": True, "off": False}[args.blend])
+        elif args.method == "caustics":
+            options.pop("progress")
+            if args.caustic_grid is not None:
+                options["resolution"] = args.caustic_grid
         elif args.method in ("icdf", "hybrid"):
             options.update(atlas_resolution=args.atlas_resolution, samples=args.samples, seed=args.seed)
             if args.method == "hybrid":
@@ -237,8 +243,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             head += f", {st['samples']} importance samples"
         if "nnz" in st:
             head += f", atlas {st['atlas_resolution']}², {st['nnz']} throughput entries"
+        if "t_precompute_s" in st:
+            head += f", precompute {st['t_precompute_s']:.1f} s"
         if "t_frame_s" in st:
-            head += f", precompute {st['t_precompute_s']:.1f} s, frame {1e3 * st['t_frame_s']:.0f} ms"
+            head += f", frame {1e3 * st['t_frame_s']:.0f} ms"
         print(f"{head}, {summary['seconds']:.1f} s in all")
     if args.command == "profiles":
         if not 0 < args.eps < 1:

@@ -14,8 +14,22 @@ The format is DESIGN.md §5::
                  "fov_deg": 40.0, "width": 256, "height": 256}
     }
 
-Optional keys: ``"decimate"`` (target face count, quadric decimation at load), ``"name"``. Positions are in
-millimetres in the centred, scaled frame. Unknown keys are an error (a typo must not be silently ignored).
+Optional keys: ``"decimate"`` (target face count, quadric decimation at load), ``"name"``, ``"caustics"``.
+Positions are in millimetres in the centred, scaled frame. Unknown keys are an error (a typo must not be
+silently ignored).
+
+``"caustics"`` makes the scene's mesh a refractive (or reflective) object above a diffuse receiver, rendered
+with ``--method caustics`` (Shah ch. 5)::
+
+    "caustics": {
+      "ior": 1.5,                     // or [r, g, b] for dispersion
+      "absorption": [0, 0.02, 0.05],  // K_a in mm^-1 (I = I0 exp(-K_a d)), number or [r, g, b]
+      "mode": "double",               // "double" (front and back refraction), "single", "reflect"
+      "receiver": {"type": "plane", "size_mm": 120, "center": [0, 0, -16], "albedo": 0.8},
+      "grid": 256                     // light-view grid (texels per side)
+    }
+
+The receiver plane faces +z; the lights must be point or directional lights.
 """
 
 from __future__ import annotations
@@ -36,10 +50,69 @@ from torchsss.geometry.loading import builtin_mesh_names, load_mesh
 from torchsss.geometry.mesh import Mesh
 from torchsss.physics.materials import preset, preset_names
 
-__all__ = ["Material", "Scene", "default_scene_path", "load_scene"]
+__all__ = ["Caustics", "Material", "Scene", "default_scene_path", "load_scene"]
 
 _KEYS_REQUIRED = {"mesh", "material", "lights", "camera"}
-_KEYS_OPTIONAL = {"size_mm", "decimate", "name"}
+_KEYS_OPTIONAL = {"size_mm", "decimate", "name", "caustics"}
+_CAUSTIC_KEYS = {"ior", "absorption", "mode", "receiver", "grid"}
+_RECEIVER_KEYS = {"type", "size_mm", "center", "albedo"}
+
+
+def _rgb_or_number(value: object, name: str, positive: bool) -> float | tuple[float, ...]:
+    vals = [value] if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    if not isinstance(vals, Sequence) or isinstance(vals, str) or len(vals) not in (1, 3) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in vals):
+        raise ValueError(f"{name}: expected a number or [r, g, b], got {value!r}")
+    if any((v <= 0) if positive else (v < 0) for v in vals):
+        raise ValueError(f"{name}: expected values {'> 0' if positive else '>= 0'}, got {value!r}")
+    return float(vals[0]) if len(vals) == 1 else tuple(float(v) for v in vals)
+
+
+@dataclass(frozen=True)
+class Caustics:
+    """The ``"caustics"`` block of a scene: refraction parameters and the receiver plane (mm)."""
+
+    ior: float | tuple[float, ...] = 1.5
+    absorption: float | tuple[float, ...] = 0.0
+    mode: str = "double"
+    receiver_size_mm: float = 120.0
+    receiver_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    albedo: float | tuple[float, ...] = 0.8
+    grid: int = 256
+
+    @classmethod
+    def from_dict(cls, d: object) -> Caustics:
+        """Validate and parse the block (see the module docstring)."""
+        if not isinstance(d, Mapping):
+            raise TypeError(f"scene.caustics: expected an object, got {type(d).__name__}")
+        if unknown := set(d) - _CAUSTIC_KEYS:
+            raise ValueError(f"scene.caustics: unknown keys {sorted(unknown)}; allowed {sorted(_CAUSTIC_KEYS)}")
+        mode = d.get("mode", "double")
+        if mode not in ("double", "single", "reflect"):
+            raise ValueError(f"scene.caustics.mode: expected 'double', 'single' or 'reflect', got {mode!r}")
+        rec = d.get("receiver", {})
+        if not isinstance(rec, Mapping):
+            raise TypeError(f"scene.caustics.receiver: expected an object, got {type(rec).__name__}")
+        if unknown := set(rec) - _RECEIVER_KEYS:
+            raise ValueError(f"scene.caustics.receiver: unknown keys {sorted(unknown)}; "
+                             f"allowed {sorted(_RECEIVER_KEYS)}")
+        if rec.get("type", "plane") != "plane":
+            raise ValueError(f"scene.caustics.receiver.type: expected 'plane', got {rec.get('type')!r}")
+        size = rec.get("size_mm", 120.0)
+        if isinstance(size, bool) or not isinstance(size, (int, float)) or not (math.isfinite(size) and size > 0):
+            raise ValueError(f"scene.caustics.receiver.size_mm: expected a finite number > 0 (mm), got {size!r}")
+        center = rec.get("center", [0.0, 0.0, 0.0])
+        if not isinstance(center, Sequence) or len(center) != 3 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in center):
+            raise ValueError(f"scene.caustics.receiver.center: expected [x, y, z] in mm, got {center!r}")
+        grid = d.get("grid", 256)
+        if isinstance(grid, bool) or not isinstance(grid, int) or not 8 <= grid <= 4096:
+            raise ValueError(f"scene.caustics.grid: expected an int in [8, 4096], got {grid!r}")
+        return cls(ior=_rgb_or_number(d.get("ior", 1.5), "scene.caustics.ior", positive=True),
+                   absorption=_rgb_or_number(d.get("absorption", 0.0), "scene.caustics.absorption", positive=False),
+                   mode=mode, receiver_size_mm=float(size), receiver_center=tuple(float(v) for v in center),
+                   albedo=_rgb_or_number(rec.get("albedo", 0.8), "scene.caustics.receiver.albedo", positive=False),
+                   grid=grid)
 
 
 @dataclass(frozen=True)
@@ -107,6 +180,7 @@ class Scene:
     decimate: int | None = None
     name: str = "scene"
     base_dir: Path = field(default_factory=Path.cwd)
+    caustics: Caustics | None = None
 
     @classmethod
     def from_dict(cls, d: Mapping, base_dir: str | Path | None = None) -> Scene:
@@ -152,6 +226,7 @@ class Scene:
             decimate=dec,
             name=str(d.get("name", "scene")),
             base_dir=base,
+            caustics=None if d.get("caustics") is None else Caustics.from_dict(d["caustics"]),
         )
 
     def mesh_source(self) -> str:

@@ -9,11 +9,14 @@ Methods register here as ``name -> function(scene, mesh, **options) -> RenderRes
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import torch
 
 from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.procedural import plane
+from torchsss.pipelines.caustics import render_caustics
 from torchsss.pipelines.chang import render_hybrid, render_icdf
 from torchsss.pipelines.lensch import render_lensch
 from torchsss.pipelines.reference import RenderResult, render_reference
@@ -38,9 +41,30 @@ def _hybrid(scene: Scene, mesh: Mesh, **options) -> RenderResult:
     return render_hybrid(mesh, scene.material, scene.lights, scene.camera, **options)
 
 
+def _caustics(scene: Scene, mesh: Mesh, *, dtype: torch.dtype = torch.float32, progress: bool = False,
+              **options) -> RenderResult:
+    """The scene's mesh refracts onto its ``"caustics"`` receiver plane (Shah ch. 5)."""
+    c = scene.caustics
+    if c is None:
+        raise ValueError("scene.caustics: expected a \"caustics\" block in the scene for --method caustics, got none")
+    if options.pop("specular", False):
+        raise ValueError("specular: expected off for --method caustics (the refractor shows Fresnel reflection of "
+                         "a uniform environment instead), got on")
+    options.pop("roughness", None)
+    size = c.receiver_size_mm
+    receiver = plane(size, size, 1, dtype=dtype)
+    receiver = dataclasses.replace(receiver, vertices=receiver.vertices + receiver.vertices.new_tensor(
+        c.receiver_center))
+    options.setdefault("resolution", c.grid)
+    res = render_caustics(mesh, receiver, scene.lights, scene.camera, ior=c.ior, absorption=c.absorption,
+                          mode=c.mode, albedo=c.albedo, **options)
+    mask = res.receiver_mask | res.refractor_mask
+    return RenderResult(res.radiance, res.direct + res.caustic, mask, dict(res.stats))
+
+
 #: Rendering methods by name.
 METHODS: dict[str, Callable[..., RenderResult]] = {"reference": _reference, "lensch": _lensch, "icdf": _icdf,
-                                                   "hybrid": _hybrid}
+                                                   "hybrid": _hybrid, "caustics": _caustics}
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,

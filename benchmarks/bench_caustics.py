@@ -1,0 +1,167 @@
+"""Caustics mapping (Shah 2007, ch. 5) benchmark: a glass sphere over a plane against an exact photon tracer.
+
+Scene: a sphere of radius R = 10 mm centred 16 mm over the floor z = 0 (just past the paraxial focus of n = 1.5),
+a directional light straight down (irradiance 1), an orthographic light view of half-width 15 mm, caustic map
+128 x 128, splat sigma 1 texel, ``mode="double"``, ``back="search"``, no Fresnel, no absorption, float64.
+
+Two sources of the light-view G-buffers, one row each:
+
+- ``mesh``: built by :func:`torchsss.pipelines.caustics.caustic_gbuffers` from a procedural icosphere
+  (``subdivisions=6``, 81920 faces; 5 with ``--quick``) over a ``plane`` receiver — the whole pipeline;
+- ``analytic``: the closed-form sphere (exact positions and normals at the texel centres), as in
+  ``tests/test_caustics.py``.
+
+Reference: rays on a jittered grid over the light view (``m x m``, 2000 full / 800 quick), refracted twice through
+the exact sphere with Snell's law in numpy, intersected with the floor, histogrammed in the map's texels and
+blurred by the splats' Gaussian (scipy). Errors: relative L1 over the whole map, and over the focused spot (texels
+where the reference exceeds 10 % of its peak). Energy ratio: total caustic flux / flux transmitted through the
+sphere that reaches the floor inside the map (the histogram's total). Time per frame: median of
+``CausticMap.forward`` (and of ``caustic_gbuffers`` for the mesh rows).
+
+Usage::
+
+    python benchmarks/bench_caustics.py                 # grids 64/128/256, results/caustics.*
+    python benchmarks/bench_caustics.py --quick --out-dir /tmp/b   # < 60 s
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark, time_callable
+from torchsss.geometry.lights import DirectionalLight
+from torchsss.geometry.mesh import mesh_from_arrays
+from torchsss.geometry.procedural import plane, sphere
+from torchsss.modules.caustics import CausticMap
+from torchsss.pipelines.caustics import caustic_gbuffers
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS_DIR = ROOT / "benchmarks" / "results"
+R, ZC, HALF, IOR, MAP, SIGMA = 10.0, 16.0, 15.0, 1.5, 128, 1.0
+F64 = torch.float64
+COLUMNS = ["source", "grid", "map", "faces", "rel_l1", "focus_rel_l1", "energy_ratio", "peak_ratio",
+           "t_module_ms", "t_gbuffers_ms", "t_frame_ms"]
+
+
+def photon_histogram(h: int, m: int, seed: int = 0) -> np.ndarray:
+    """Flux (irradiance 1) reaching the floor per texel of an (h, h) map of half-width HALF, exact sphere."""
+    rng = np.random.default_rng(seed)
+    cell = 2 * HALF / m
+    x = (-HALF + (np.arange(m)[None, :] + rng.random((m, m))) * cell).ravel()
+    y = (-HALF + (np.arange(m)[:, None] + rng.random((m, m))) * cell).ravel()
+    r2 = x * x + y * y
+    s = r2 < R * R
+    x, y, r2 = x[s], y[s], r2[s]
+    c = np.array([0.0, 0.0, ZC])
+    p = np.stack([x, y, ZC + np.sqrt(R * R - r2)], -1)
+
+    def snell(i, n, eta):
+        cc = -(i * n).sum(-1, keepdims=True)
+        k = 1.0 - eta**2 * (1.0 - cc**2)
+        t = eta * i + (eta * cc - np.sqrt(np.clip(k, 0.0, None))) * n
+        return t / np.linalg.norm(t, axis=-1, keepdims=True), k[..., 0] > 0
+
+    t1, _ = snell(np.broadcast_to([0.0, 0.0, -1.0], p.shape), (p - c) / R, 1.0 / IOR)
+    q = p - 2.0 * ((p - c) * t1).sum(-1)[:, None] * t1
+    t2, ok = snell(t1, -(q - c) / R, IOR)
+    down = ok & (t2[:, 2] < 0)
+    q, t2 = q[down], t2[down]
+    hit = q - (q[:, 2] / t2[:, 2])[:, None] * t2
+    col = np.floor((hit[:, 0] + HALF) / (2 * HALF) * h).astype(int)
+    row = np.floor((HALF - hit[:, 1]) / (2 * HALF) * h).astype(int)
+    inside = (col >= 0) & (col < h) & (row >= 0) & (row < h)
+    hist = np.zeros((h, h))
+    np.add.at(hist, (row[inside], col[inside]), cell * cell)
+    return hist
+
+
+def analytic_inputs(g: int) -> tuple:
+    """Closed-form G-buffers of the sphere (as tests/test_caustics.py), the floor texture and the light view."""
+    xs = -HALF + (np.arange(g) + 0.5) * 2 * HALF / g
+    x, y = np.meshgrid(xs, xs[::-1])
+    r2 = x * x + y * y
+    mask = r2 < R * R
+    hh = np.sqrt(np.clip(R * R - r2, 0.0, None))
+    nan = np.where(mask, 1.0, np.nan)
+
+    def t(a):
+        return torch.tensor(a, dtype=F64)[None]
+
+    m = t(mask[None])
+    xm = -HALF + (np.arange(MAP) + 0.5) * 2 * HALF / MAP
+    fx, fy = np.meshgrid(xm, xm[::-1])
+    floor = t(np.stack([fx, fy, np.zeros_like(fx)]))
+    vp = torch.zeros(1, 4, 4, dtype=F64)
+    vp[0, 0, 0] = vp[0, 1, 1] = 1.0 / HALF
+    vp[0, 2, 2] = -0.01
+    vp[0, 3, 3] = 1.0
+    return (t(np.stack([x, y, ZC + hh]) * nan), t(np.stack([x, y, hh]) / R), m,
+            t(np.stack([x, y, ZC - hh]) * nan), t(np.stack([x, y, -hh]) / R), m.clone(), floor,
+            torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=F64), torch.ones(1, 1, dtype=F64), vp)
+
+
+def scene_meshes(subdivisions: int):
+    s = sphere(R, subdivisions, dtype=F64)
+    s = mesh_from_arrays(s.vertices + torch.tensor([0.0, 0.0, ZC], dtype=F64), s.faces, dtype=F64, name="sphere")
+    return s, plane(120.0, 120.0, 4, dtype=F64)
+
+
+def measure(source: str, grid: int, inputs: tuple, ref: np.ndarray, hist_total: float, extra: dict,
+            repeats: int) -> dict:
+    module = CausticMap(IOR, 0.0, mode="double", sigma_px=SIGMA)
+    with torch.no_grad():
+        cmap = module(*inputs)[0, 0].numpy()
+        t = time_callable(lambda: module(*inputs), repeats=repeats, warmup=1, min_time_s=0.0)
+    focus = ref > 0.1 * ref.max()
+    rec = {
+        "benchmark": "sphere", "source": source, "grid": grid, "map": MAP, **extra,
+        "rel_l1": float(np.abs(cmap - ref).sum() / ref.sum()),
+        "focus_rel_l1": float(np.abs(cmap - ref)[focus].sum() / ref[focus].sum()),
+        "energy_ratio": float(cmap.sum() / hist_total),
+        "peak_ratio": float(cmap.max() / ref.max()),
+        "t_module_ms": 1e3 * t["median_s"],
+    }
+    rec["t_frame_ms"] = rec["t_module_ms"] + (rec.get("t_gbuffers_ms") or 0.0)
+    print(f"{source:8s} grid {grid:4d}: rel L1 {rec['rel_l1']:.4f}, focus {rec['focus_rel_l1']:.4f}, energy "
+          f"{rec['energy_ratio']:.4f}, module {rec['t_module_ms']:.1f} ms, frame {rec['t_frame_ms']:.1f} ms",
+          flush=True)
+    return rec
+
+
+def main(argv=None) -> int:
+    parser = benchmark_parser(__doc__.splitlines()[0], "caustics", RESULTS_DIR)
+    args = parser.parse_args(argv)
+    setup_benchmark(parser, args)
+    start = time.perf_counter()
+    grids = (64, 128) if args.quick else (64, 128, 256)
+    subdiv = 5 if args.quick else 6
+    repeats = 2 if args.quick else 5
+    hist = photon_histogram(MAP, 800 if args.quick else 2000, args.seed)
+    ref = ndimage.gaussian_filter(hist, SIGMA, mode="constant", truncate=3.0)
+    total = float(hist.sum())
+    print(f"reference: {total:.3f} mm^2 of the sphere's {np.pi * R * R:.3f} reach the map", flush=True)
+    refractor, receiver = scene_meshes(subdiv)
+    light = DirectionalLight((0.0, 0.0, -1.0), 1.0)
+    records = []
+    for g in grids:
+        records.append(measure("analytic", g, analytic_inputs(g), ref, total, {"faces": None}, repeats))
+        t0 = time.perf_counter()
+        gb = caustic_gbuffers(refractor, receiver, light, g, map_resolution=MAP, margin=HALF / R)
+        t_gb = time.perf_counter() - t0
+        inputs = list(gb.module_inputs())
+        inputs[8] = inputs[8][:, :1]  # one channel: the light is white
+        records.append(measure("mesh", g, tuple(inputs), ref, total,
+                               {"faces": refractor.num_faces, "t_gbuffers_ms": 1e3 * t_gb}, repeats))
+    name = args.name + ("_quick" if args.quick and args.name == "caustics" else "")
+    finish_benchmark(name, records, args.out_dir, columns=COLUMNS, start=start)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

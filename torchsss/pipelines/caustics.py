@@ -1,0 +1,510 @@
+"""Caustics pipeline (Shah 2007, ch. 5): meshes -> light-view G-buffers -> :class:`CausticMap` -> camera image.
+
+:func:`caustic_gbuffers` renders, from one light camera, the refractor's nearest layer (front), its farthest layer
+(back) and the receiver's positions texture. :func:`render_caustics` runs :class:`~torchsss.modules.caustics.
+CausticMap` on them, converts the map's flux per texel to irradiance on the receiver, and shades a camera image of
+the receiver (diffuse, albedo / pi) lit by the direct light (hard shadow of the refractor from a shadow map) plus
+the caustic irradiance.
+
+Conventions and choices:
+
+- **Light camera.** Fitted to the refractor's bounding sphere (centre c, radius r): an orthographic box along a
+  directional light of half-size ``margin * r`` (``margin`` > 1 leaves room for light bent outside the
+  refractor's silhouette), or a perspective frustum from a point light towards c with the half-angle
+  :math:`\\arcsin(\\min(1, margin\\, r / d))` (capped at 80 degrees). Near and far enclose every vertex of both
+  meshes along the line of sight (a point light's near plane stays at 0.5 times the distance of the refractor's
+  nearest point; receiver parts closer than that to the light are clipped). The camera's up is +y (+z when the
+  light runs along y).
+- **Back layer.** The refractor is rasterized a second time with its clip-space z negated, so that the z-buffer
+  keeps the *farthest* surface along every light ray (the clip volume's z range is symmetric, and the
+  perspective-correct barycentrics depend on x, y, w only). This needs no consistent face winding (the decimated
+  bunny's winding is not guaranteed) and is exactly "the farthest layer" that Wyman's double-surface refraction
+  reads. Normals are the interpolated outward vertex normals (CausticMap accepts either orientation).
+- **Receiver texture.** The receiver alone (the refractor is not drawn into it); texels without receiver hold
+  NaN. The receiver's normals are kept for the flux -> irradiance conversion.
+- **Flux -> irradiance.** A light-view texel at a receiver point x covers the area :math:`A_\\perp(x) = (4/HW) /
+  |\\nabla x_{ndc} \\times \\nabla y_{ndc}|` perpendicular to the light ray through x (the same footprint as in
+  :class:`CausticMap`), so the receiver surface it covers is :math:`A_\\perp / \\cos\\theta` and the caustic
+  irradiance is :math:`E = \\Phi \\cos\\theta / A_\\perp`, :math:`\\theta` between the receiver normal and the
+  ray. Irradiance is set to 0 where :math:`\\cos\\theta < 10^{-3}`.
+- **Camera image.** Receiver pixels: :math:`L = \\rho/\\pi\\,(V E_{direct} + E_{caustic})`, :math:`E_{direct} =
+  E_\\perp \\max(0, n\\cdot l)` (point light: :math:`I \\max(0, n \\cdot l)/d^2`), V the shadow-map visibility of
+  the refractor (the receiver does not shadow itself), :math:`E_{caustic}` the caustic irradiance map sampled
+  bilinearly at the pixel's projection into the light view (no light-view occlusion test between receiver parts:
+  meant for floors and walls). Refractor pixels: :math:`F_r(\\cos\\theta_v)\\, L_{env}` — the exact Fresnel
+  reflectance of a uniform environment of radiance ``environment`` (default 0: the refractor is drawn black).
+  Background: 0.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchsss.geometry.camera import Camera, transform_points
+from torchsss.geometry.lights import DirectionalLight, PointLight
+from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.raster import interpolate, rasterize
+from torchsss.geometry.shadow import bounding_sphere, build_shadow_map, shadow_visibility
+from torchsss.modules.caustics import CausticMap
+from torchsss.physics.fresnel import fresnel_reflectance
+
+__all__ = ["CausticGBuffers", "CausticsResult", "caustic_gbuffers", "caustic_irradiance", "caustic_light_camera",
+           "render_caustics", "texel_footprint"]
+
+_MAX_HALF_ANGLE_DEG = 80.0
+
+
+class CausticGBuffers(NamedTuple):
+    """Light-view G-buffers of a refractor over a receiver (batch 1, the inputs of :class:`CausticMap`).
+
+    Attributes:
+        front_position, front_normal: :math:`(1, 3, H, W)` nearest layer of the refractor (NaN / 0 where empty).
+        front_mask: :math:`(1, 1, H, W)` bool.
+        back_position, back_normal: :math:`(1, 3, H, W)` farthest layer of the refractor.
+        back_mask: :math:`(1, 1, H, W)` bool.
+        receiver_position: :math:`(1, 3, H_r, W_r)` receiver positions, NaN where no receiver.
+        receiver_normal: :math:`(1, 3, H_r, W_r)` unit receiver normals, 0 where no receiver.
+        receiver_mask: :math:`(1, 1, H_r, W_r)` bool.
+        light: :math:`(1, 4)` homogeneous light for :class:`CausticMap` (xyz towards the light, w = 0; or the
+            point light's position, w = 1).
+        intensity: :math:`(1, 3)` irradiance of a directional light, intensity of a point light.
+        view_proj: :math:`(1, 4, 4)` the light camera's world-to-clip matrix.
+        camera: the light :class:`~torchsss.geometry.camera.Camera` (grid resolution).
+    """
+
+    front_position: Tensor
+    front_normal: Tensor
+    front_mask: Tensor
+    back_position: Tensor
+    back_normal: Tensor
+    back_mask: Tensor
+    receiver_position: Tensor
+    receiver_normal: Tensor
+    receiver_mask: Tensor
+    light: Tensor
+    intensity: Tensor
+    view_proj: Tensor
+    camera: Camera
+
+    def module_inputs(self) -> tuple[Tensor, ...]:
+        """The ten positional inputs of :meth:`CausticMap.forward`, in order."""
+        return (self.front_position, self.front_normal, self.front_mask, self.back_position, self.back_normal,
+                self.back_mask, self.receiver_position, self.light, self.intensity, self.view_proj)
+
+
+@dataclass
+class CausticsResult:
+    """A rendered caustics image and its intermediate maps.
+
+    Attributes:
+        radiance: :math:`(1, 3, H, W)` camera image (linear radiance; 0 on background).
+        receiver_mask: :math:`(1, 1, H, W)` bool, pixels that see the receiver.
+        refractor_mask: :math:`(1, 1, H, W)` bool, pixels that see the refractor.
+        direct: :math:`(1, 3, H, W)` direct irradiance on the receiver pixels (shadowed).
+        caustic: :math:`(1, 3, H, W)` caustic irradiance on the receiver pixels.
+        caustic_maps: per light, the :math:`(1, 3, H_r, W_r)` light-view caustic flux per texel.
+        irradiance_maps: per light, the light-view caustic irradiance maps.
+        gbuffers: per light, the :class:`CausticGBuffers`.
+        stats: timings in seconds.
+    """
+
+    radiance: Tensor
+    receiver_mask: Tensor
+    refractor_mask: Tensor
+    direct: Tensor
+    caustic: Tensor
+    caustic_maps: list = field(default_factory=list)
+    irradiance_maps: list = field(default_factory=list)
+    gbuffers: list = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+
+
+# -- checks ------------------------------------------------------------------------------------------------------------
+def _check_mesh(mesh: object, name: str) -> Mesh:
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"{name}: expected a torchsss Mesh, got {type(mesh).__name__}")
+    return mesh
+
+
+def _check_light(light: object, name: str = "light") -> DirectionalLight | PointLight:
+    if not isinstance(light, (DirectionalLight, PointLight)):
+        raise TypeError(f"{name}: expected a DirectionalLight or PointLight, got {type(light).__name__}")
+    return light
+
+
+def _check_int(value: object, name: str, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(value).__name__}")
+    if value < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {value}")
+    return int(value)
+
+
+def _check_number(value: object, name: str, minimum: float, inclusive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
+    v = float(value)
+    if not math.isfinite(v) or v < minimum or (v == minimum and not inclusive):
+        raise ValueError(f"{name}: expected a finite number {'>=' if inclusive else '>'} {minimum}, got {value!r}")
+    return v
+
+
+# -- light camera and G-buffers ----------------------------------------------------------------------------------
+def _along(points: Tensor, origin: Sequence[float], axis: Sequence[float]) -> Tensor:
+    o = torch.tensor(origin, dtype=torch.float64)
+    a = torch.tensor(axis, dtype=torch.float64)
+    return (points.detach().double().cpu() - o) @ a
+
+
+def caustic_light_camera(refractor: Mesh, receiver: Mesh, light: DirectionalLight | PointLight, resolution: int,
+                         margin: float = 1.5) -> Camera:
+    """The light camera of :func:`caustic_gbuffers` (see the module docstring).
+
+    Raises:
+        TypeError, ValueError: bad arguments; a point light inside the refractor's bounding sphere.
+
+    Examples:
+        >>> from torchsss.geometry.procedural import plane, sphere
+        >>> cam = caustic_light_camera(sphere(10.0, 3), plane(80.0, 80.0, 2), DirectionalLight((0, 0, -1), 1), 64)
+        >>> cam.projection, round(cam.ortho_half_height, 3)
+        ('orthographic', 15.0)
+    """
+    _check_mesh(refractor, "refractor")
+    _check_mesh(receiver, "receiver")
+    _check_light(light)
+    resolution = _check_int(resolution, "resolution")
+    margin = _check_number(margin, "margin", 0.0)
+    centre, radius = bounding_sphere(refractor)
+    if not radius > 0:
+        raise ValueError(f"refractor: expected a mesh of non-zero extent, got bounding radius {radius}")
+    allv = torch.cat([refractor.vertices.detach().double().cpu(), receiver.vertices.detach().double().cpu()])
+    if isinstance(light, DirectionalLight):
+        d = light.direction
+        up = (0.0, 0.0, 1.0) if abs(d[1]) > 0.9 else (0.0, 1.0, 0.0)
+        eye = tuple(c - 2.0 * radius * di for c, di in zip(centre, d))
+        depth = _along(allv, eye, d)
+        pad = 0.01 * radius + 1e-3
+        return Camera(eye=eye, target=tuple(centre), up=up, width=resolution, height=resolution,
+                      near=float(depth.min()) - pad, far=float(depth.max()) + pad, projection="orthographic",
+                      ortho_half_height=margin * radius)
+    offset = tuple(c - p for c, p in zip(centre, light.position))
+    dist = math.sqrt(sum(o * o for o in offset))
+    if dist <= 1.01 * radius:
+        raise ValueError(f"light: expected a point light outside the refractor's bounding sphere (radius "
+                         f"{radius:.3f} mm), got distance {dist:.3f} mm")
+    axis = tuple(o / dist for o in offset)
+    half = min(math.degrees(math.asin(min(1.0, margin * radius / dist))), _MAX_HALF_ANGLE_DEG)
+    depth = _along(allv, light.position, axis)
+    near = 0.5 * (dist - radius)
+    far = max(float(depth.max()), dist + radius) * 1.01 + 1e-3
+    up = (0.0, 0.0, 1.0) if abs(axis[1]) > 0.9 else (0.0, 1.0, 0.0)
+    return Camera(eye=tuple(light.position), target=tuple(centre), up=up, fov_deg=2.0 * half, width=resolution,
+                  height=resolution, near=near, far=far)
+
+
+def _layer(mesh: Mesh, vp: Tensor, resolution: int, farthest: bool) -> tuple[Tensor, Tensor, Tensor]:
+    clip = transform_points(mesh.vertices, vp)
+    if farthest:
+        clip = clip * torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=clip.dtype, device=clip.device)
+    raster = rasterize(clip, mesh.faces, (resolution, resolution))
+    mask = raster.mask
+    pos = interpolate(mesh.vertices, raster, mesh.faces)
+    pos = torch.where(mask, pos, torch.full_like(pos, float("nan")))
+    nrm = F.normalize(interpolate(mesh.vertex_normals, raster, mesh.faces), dim=1, eps=1e-12) * mask
+    return pos, nrm, mask
+
+
+def caustic_gbuffers(refractor: Mesh, receiver: Mesh, light: DirectionalLight | PointLight, resolution: int = 256,
+                     *, map_resolution: int | None = None, margin: float = 1.5) -> CausticGBuffers:
+    """Light-view G-buffers of ``refractor`` over ``receiver`` for :class:`CausticMap`.
+
+    Args:
+        refractor: the refractive object (mm).
+        receiver: the surfaces that catch the caustic (mm), e.g. a floor plane.
+        light: a :class:`DirectionalLight` (orthographic light camera) or :class:`PointLight` (perspective).
+        resolution: refractive-grid size (front and back layers), an int >= 1.
+        map_resolution: caustic-map size (the receiver texture); default ``resolution``.
+        margin: light-camera half-extent over the refractor's bounding radius (> 0).
+
+    Returns:
+        :class:`CausticGBuffers` in the refractor's dtype (front/back by z-buffering nearest / farthest, see the
+        module docstring).
+
+    Raises:
+        TypeError: a mesh or light of the wrong type, non-int resolutions.
+        ValueError: resolutions < 1, ``margin`` <= 0, a point light inside the refractor's bounding sphere.
+
+    Examples:
+        >>> from torchsss.geometry.procedural import plane, sphere
+        >>> gb = caustic_gbuffers(sphere(10.0, 3), plane(80.0, 80.0, 2), DirectionalLight((0, 0, -1), 1), 32)
+        >>> tuple(gb.front_position.shape), bool(gb.receiver_mask.all())
+        ((1, 3, 32, 32), True)
+    """
+    _check_mesh(refractor, "refractor")
+    _check_mesh(receiver, "receiver")
+    _check_light(light)
+    resolution = _check_int(resolution, "resolution")
+    map_resolution = resolution if map_resolution is None else _check_int(map_resolution, "map_resolution")
+    cam = caustic_light_camera(refractor, receiver, light, resolution, margin)
+    dtype, device = refractor.vertices.dtype, refractor.vertices.device
+    vp = cam.view_proj(dtype=dtype, device=device)
+    fp, fn, fm = _layer(refractor, vp, resolution, farthest=False)
+    bp, bn, bm = _layer(refractor, vp, resolution, farthest=True)
+    rec = receiver.with_dtype(dtype).with_device(device) if receiver.vertices.dtype != dtype or \
+        receiver.vertices.device != device else receiver
+    rp, rn, rm = _layer(rec, vp, map_resolution, farthest=False)
+    if isinstance(light, DirectionalLight):
+        lt = torch.tensor([[-c for c in light.direction] + [0.0]], dtype=dtype, device=device)
+        inten = torch.tensor([light.irradiance], dtype=dtype, device=device)
+    else:
+        lt = torch.tensor([[*light.position, 1.0]], dtype=dtype, device=device)
+        inten = torch.tensor([light.intensity], dtype=dtype, device=device)
+    return CausticGBuffers(fp, fn, fm, bp, bn, bm, rp, rn, rm, lt, inten, vp[None], cam)
+
+
+# -- flux -> irradiance ------------------------------------------------------------------------------------------------
+def texel_footprint(points: Tensor, view_proj: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Area :math:`A_\\perp` (mm^2) of one light-view texel at ``points``, and the unit light-ray direction there.
+
+    :math:`A_\\perp` is measured perpendicular to the light ray; the direction points away from the light.
+
+    Args:
+        points: :math:`(B, N, 3)` finite positions.
+        view_proj: :math:`(B, 4, 4)` or :math:`(4, 4)` world-to-clip matrix.
+        size: ``(H, W)``.
+
+    Returns:
+        ``(area (B, N), direction (B, N, 3))``; area 0 where the Jacobian is degenerate.
+    """
+    vp = view_proj if view_proj.dim() == 3 else view_proj[None]
+    vp = vp.to(points.dtype)
+    clip = transform_points(points, vp)
+    cw = clip[..., 3:4]
+    cw = torch.where(cw != 0, cw, torch.ones_like(cw))
+    a = vp[:, None, :, :3]
+    gx = (a[:, :, 0] - clip[..., 0:1] / cw * a[:, :, 3]) / cw
+    gy = (a[:, :, 1] - clip[..., 1:2] / cw * a[:, :, 3]) / cw
+    cross = torch.linalg.cross(gx, gy)
+    jac = cross.norm(dim=-1)
+    area = torch.where(jac > 0, (4.0 / (size[0] * size[1])) / torch.where(jac > 0, jac, torch.ones_like(jac)),
+                       torch.zeros_like(jac))
+    # the ray direction is the null direction of the NDC Jacobian: along gx x gy; orient it away from the light
+    ray = F.normalize(cross, dim=-1, eps=1e-30)
+    depth_grad = (a[:, :, 2] - clip[..., 2:3] / cw * a[:, :, 3]) / cw  # NDC depth grows away from the light
+    sign = torch.sign((ray * depth_grad).sum(-1, keepdim=True))
+    return area, ray * torch.where(sign == 0, torch.ones_like(sign), sign)
+
+
+def caustic_irradiance(flux: Tensor, gbuffers: CausticGBuffers, min_cos: float = 1e-3) -> Tensor:
+    """Caustic irradiance (W/mm^2 per channel) on the receiver texels: :math:`\\Phi \\cos\\theta / A_\\perp`.
+
+    Args:
+        flux: :math:`(1, C, H_r, W_r)` caustic map (flux per texel) from :class:`CausticMap`.
+        gbuffers: the G-buffers it was computed from.
+        min_cos: below this :math:`\\cos\\theta` the irradiance is set to 0.
+
+    Returns:
+        :math:`(1, C, H_r, W_r)` irradiance, 0 where no receiver.
+    """
+    if not isinstance(flux, Tensor):
+        raise TypeError(f"flux: expected a torch.Tensor, got {type(flux).__name__}")
+    if flux.dim() != 4 or flux.shape[-2:] != gbuffers.receiver_position.shape[-2:]:
+        raise ValueError(f"flux: expected shape (B, C, {gbuffers.receiver_position.shape[-2]}, "
+                         f"{gbuffers.receiver_position.shape[-1]}), got {tuple(flux.shape)}")
+    h, w = flux.shape[-2:]
+    mask = gbuffers.receiver_mask.flatten(2).transpose(1, 2)[..., 0]
+    pts = gbuffers.receiver_position.flatten(2).transpose(1, 2)
+    pts = torch.where(mask[..., None], pts, torch.zeros_like(pts))
+    area, ray = texel_footprint(pts, gbuffers.view_proj, (h, w))
+    nrm = gbuffers.receiver_normal.flatten(2).transpose(1, 2)
+    cos = (nrm * ray).sum(-1).abs()
+    ok = mask & (cos >= min_cos) & (area > 0)
+    scale = torch.where(ok, cos / torch.where(area > 0, area, torch.ones_like(area)), torch.zeros_like(area))
+    return flux * scale.view(1, 1, h, w).to(flux.dtype)
+
+
+def _sample_light_view(image: Tensor, points: Tensor, view_proj: Tensor) -> Tensor:
+    """Bilinear lookup of a light-view image (1, C, H, W) at world points (1, N, 3): (1, N, C), 0 outside the view."""
+    clip = transform_points(points, view_proj.to(points.dtype))
+    wc = clip[..., 3:4]
+    front = wc > 0
+    ndc = clip[..., :2] / torch.where(front, wc, torch.ones_like(wc))
+    grid = torch.stack([ndc[..., 0], -ndc[..., 1]], -1)  # grid_sample: y = -1 is row 0 (the top, NDC y = +1)
+    grid = torch.where(front & torch.isfinite(grid), grid, torch.full_like(grid, 4.0))
+    out = F.grid_sample(image.to(points.dtype), grid[:, None], mode="bilinear", padding_mode="zeros",
+                        align_corners=False)  # (1, C, 1, N)
+    return out[:, :, 0].transpose(1, 2)
+
+
+# -- render ------------------------------------------------------------------------------------------------------------
+def _camera_layer(mesh: Mesh, vp: Tensor, res: tuple[int, int]):
+    clip = transform_points(mesh.vertices, vp)
+    raster = rasterize(clip, mesh.faces, res)
+    pos = interpolate(mesh.vertices, raster, mesh.faces)
+    nrm = F.normalize(interpolate(mesh.vertex_normals, raster, mesh.faces), dim=1, eps=1e-12)
+    return pos, nrm, raster.mask, raster.depth
+
+
+def _rgb(value: object, name: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if isinstance(value, bool):
+        raise TypeError(f"{name}: expected a number or 3 numbers, got bool")
+    try:
+        t = torch.as_tensor(value, dtype=torch.float64).reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"{name}: expected a number or 3 numbers, got {value!r}") from err
+    if t.numel() == 1:
+        t = t.expand(3)
+    if t.numel() != 3 or not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise ValueError(f"{name}: expected one or three finite values >= 0, got {value!r}")
+    return t.to(dtype=dtype, device=device)
+
+
+def render_caustics(
+    refractor: Mesh,
+    receiver: Mesh,
+    lights: DirectionalLight | PointLight | Sequence[DirectionalLight | PointLight],
+    camera: Camera,
+    *,
+    ior: float | Sequence[float] = 1.5,
+    absorption: float | Sequence[float] = 0.0,
+    resolution: int = 256,
+    map_resolution: int | None = None,
+    mode: str = "double",
+    albedo: float | Sequence[float] = 0.8,
+    environment: float | Sequence[float] = 0.0,
+    shadow_resolution: int = 1024,
+    margin: float = 1.5,
+    module: CausticMap | None = None,
+    **module_kwargs,
+) -> CausticsResult:
+    """Render the receiver lit directly and through the refractor's caustics, seen from ``camera``.
+
+    Args:
+        refractor: the refractive object (mm).
+        receiver: the diffuse receiver (mm), e.g. ``plane(...)`` under the refractor.
+        lights: one light or a sequence of :class:`DirectionalLight` / :class:`PointLight`.
+        camera: the viewing camera.
+        ior: refractor index (a number, or 3 values for dispersion).
+        absorption: :math:`K_a` in mm^-1 (a number or 3 values).
+        resolution: refractive-grid size of every light view.
+        map_resolution: caustic-map size (default ``resolution``).
+        mode: :class:`CausticMap` mode (``"double"``, ``"single"``, ``"reflect"``).
+        albedo: receiver diffuse albedo (number or RGB).
+        environment: uniform environment radiance reflected by the refractor (Fresnel); 0 draws it black.
+        shadow_resolution: shadow-map size for the refractor's shadow.
+        margin: light-camera half-extent over the refractor's bounding radius.
+        module: a ready :class:`CausticMap` (then ``ior``, ``absorption``, ``mode`` and ``module_kwargs`` are not
+            used); otherwise one is built from them.
+        **module_kwargs: more :class:`CausticMap` options (``sigma_px``, ``fresnel``, ``iterations``, ...).
+
+    Returns:
+        :class:`CausticsResult` (image, masks, per-light maps, timings).
+
+    Raises:
+        TypeError, ValueError: bad meshes, lights, camera or options (naming the argument).
+    """
+    t_start = time.perf_counter()
+    _check_mesh(refractor, "refractor")
+    _check_mesh(receiver, "receiver")
+    light_list = [lights] if isinstance(lights, (DirectionalLight, PointLight)) else lights
+    if isinstance(light_list, (str, bytes)) or not isinstance(light_list, Sequence) or len(light_list) == 0:
+        raise TypeError(f"lights: expected a light or a non-empty sequence of lights, got {type(lights).__name__}")
+    for i, light in enumerate(light_list):
+        _check_light(light, f"lights[{i}]")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
+    if module is not None and not isinstance(module, CausticMap):
+        raise TypeError(f"module: expected a CausticMap or None, got {type(module).__name__}")
+    shadow_resolution = _check_int(shadow_resolution, "shadow_resolution")
+    dtype, device = refractor.vertices.dtype, refractor.vertices.device
+    if receiver.vertices.dtype != dtype or receiver.vertices.device != device:
+        receiver = receiver.with_dtype(dtype).with_device(device)
+    rho = _rgb(albedo, "albedo", dtype, device)
+    env = _rgb(environment, "environment", dtype, device)
+    if module is None:
+        module = CausticMap(ior, absorption, mode=mode, **module_kwargs)
+    module = module.to(device)
+    eta = float(module.ior.mean())
+
+    # camera view of both meshes
+    t0 = time.perf_counter()
+    vp_cam = camera.view_proj(dtype=dtype, device=device)
+    res = camera.resolution
+    r_pos, r_nrm, r_mask, r_depth = _camera_layer(receiver, vp_cam, res)
+    f_pos, f_nrm, f_mask, f_depth = _camera_layer(refractor, vp_cam, res)
+    rec_vis = r_mask & (~f_mask | (r_depth < f_depth))
+    ref_vis = f_mask & ~rec_vis
+    pts = r_pos.flatten(2).transpose(1, 2)
+    nrm = r_nrm.flatten(2).transpose(1, 2)
+    keep = rec_vis.flatten(1)
+    pts = torch.where(keep[..., None], pts, torch.zeros_like(pts))
+    t_camera = time.perf_counter() - t0
+
+    h, w = res
+    direct = torch.zeros(1, h * w, 3, dtype=dtype, device=device)
+    caustic = torch.zeros_like(direct)
+    maps, irr_maps, gbs = [], [], []
+    t_gb = t_mod = t_shade = 0.0
+    for light in light_list:
+        t0 = time.perf_counter()
+        gb = caustic_gbuffers(refractor, receiver, light, resolution, map_resolution=map_resolution, margin=margin)
+        t_gb += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            cmap = module(*gb.module_inputs())
+        t_mod += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        irr = caustic_irradiance(cmap, gb)
+        if cmap.shape[1] == 1:
+            irr = irr.expand(1, 3, *irr.shape[-2:])
+        # direct light with the refractor's shadow
+        if isinstance(light, DirectionalLight):
+            to_light = -torch.tensor(light.direction, dtype=dtype, device=device).expand_as(pts)
+            e0 = torch.tensor(light.irradiance, dtype=dtype, device=device).view(1, 1, 3)
+        else:
+            lp = torch.tensor(light.position, dtype=dtype, device=device)
+            dv = lp - pts
+            d2 = (dv * dv).sum(-1, keepdim=True).clamp_min(1e-12)
+            to_light = dv / d2.sqrt()
+            e0 = torch.tensor(light.intensity, dtype=dtype, device=device).view(1, 1, 3) / d2
+        cos = (nrm * to_light).sum(-1, keepdim=True).clamp_min(0.0)
+        sm = build_shadow_map(refractor, light, shadow_resolution)
+        vis = shadow_visibility(sm, pts, nrm, light)[..., None]
+        direct = direct + e0 * cos * vis * keep[..., None]
+        caustic = caustic + _sample_light_view(irr, pts, gb.view_proj) * keep[..., None]
+        t_shade += time.perf_counter() - t0
+        maps.append(cmap)
+        irr_maps.append(irr)
+        gbs.append(gb)
+
+    t0 = time.perf_counter()
+
+    def img(x: Tensor) -> Tensor:
+        return x.transpose(1, 2).reshape(1, -1, h, w)
+
+    direct_img, caustic_img = img(direct), img(caustic)
+    radiance = rho.view(1, 3, 1, 1) / math.pi * (direct_img + caustic_img) * rec_vis
+    if bool(env.gt(0).any()):
+        eye = torch.tensor(camera.eye, dtype=dtype, device=device).view(1, 3, 1, 1)
+        if camera.projection == "orthographic":
+            tgt = torch.tensor(camera.target, dtype=dtype, device=device).view(1, 3, 1, 1)
+            view_dir = F.normalize(eye - tgt, dim=1).expand_as(f_pos)
+        else:
+            view_dir = F.normalize(eye - f_pos, dim=1, eps=1e-12)
+        cos_v = (view_dir * f_nrm).sum(1, keepdim=True).abs()
+        radiance = radiance + fresnel_reflectance(cos_v, eta) * env.view(1, 3, 1, 1) * ref_vis
+    radiance = torch.nan_to_num(radiance, nan=0.0, posinf=0.0, neginf=0.0)
+    t_shade += time.perf_counter() - t0
+    stats = {"t_camera_s": t_camera, "t_gbuffers_s": t_gb, "t_module_s": t_mod, "t_shade_s": t_shade,
+             "t_frame_s": time.perf_counter() - t_start}
+    return CausticsResult(radiance, rec_vis, ref_vis, direct_img * rec_vis, caustic_img * rec_vis, maps, irr_maps,
+                          gbs, stats)
