@@ -57,6 +57,7 @@ import numbers
 from collections.abc import Sequence
 
 import torch
+from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
 from torchsss._checks import as_float_tensor, check_positive, check_shape, check_tensor, is_tracing
@@ -119,6 +120,8 @@ class CausticMap(nn.Module):
         kernel_size: fixed splat window (default :math:`2 \\lceil 3\\sigma \\rceil + 1`).
         fresnel: weight by the exact Fresnel transmittance of each interface (reflectance for ``"reflect"``).
         flux: ``"texel"`` (power through each grid texel, default) or ``"shah"`` (eq. 5.6).
+        lowpass_sigma_px: optional Gaussian low-pass of the caustic map (texels, kornia ``gaussian_blur2d`` with
+            reflected borders; 0 = off), the smoothing Shah applies against splat gaps.
 
     Raises:
         TypeError, ValueError: options of the wrong type or out of range (naming the option).
@@ -144,6 +147,7 @@ class CausticMap(nn.Module):
         kernel_size: int | None = None,
         fresnel: bool = False,
         flux: str = "texel",
+        lowpass_sigma_px: float = 0.0,
     ) -> None:
         super().__init__()
         for name, value, allowed in (("mode", mode, _MODES), ("back", back, _BACK), ("method", method, _METHODS),
@@ -170,6 +174,11 @@ class CausticMap(nn.Module):
         self.sigma_px = float(sigma_px)
         self.kernel_size = int(kernel_size) if kernel_size is not None else k_default
         self.fresnel = fresnel
+        lp = float(lowpass_sigma_px) if isinstance(lowpass_sigma_px, (int, float)) and not isinstance(
+            lowpass_sigma_px, bool) else None
+        if lp is None or not (lp >= 0 and lp < float("inf")):
+            raise ValueError(f"lowpass_sigma_px: expected a finite number >= 0, got {lowpass_sigma_px!r}")
+        self.lowpass_sigma_px = lp
         self.register_buffer("ior", _channels(ior, "ior", positive=True))
         self.register_buffer("absorption", _channels(absorption, "absorption", positive=False))
 
@@ -329,7 +338,13 @@ class CausticMap(nn.Module):
         flux = power * weight * torch.exp(-k_a * inside_len)
         flux = torch.where(alive, flux, torch.zeros_like(flux))
         size = (receiver_position.shape[-2], receiver_position.shape[-1])
-        return splat_caustics(q, flux, alive, view_proj, size, self.sigma_px, self.kernel_size)
+        out = splat_caustics(q, flux, alive, view_proj, size, self.sigma_px, self.kernel_size)
+        if self.lowpass_sigma_px > 0:
+            # Shah's optional low-pass of the caustic map (kornia; reflected borders keep the flux on the map, up to
+            # the mirrored texels at the edge)
+            k = default_kernel_size(self.lowpass_sigma_px)
+            out = gaussian_blur2d(out, (k, k), (self.lowpass_sigma_px, self.lowpass_sigma_px), border_type="reflect")
+        return out
 
     def _through_back(
         self, p: Tensor, t1: Tensor, back_position: Tensor, back_normal: Tensor, back_mask: Tensor,
