@@ -182,7 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
     p_ren.add_argument("--float64", action="store_true", help="integrate in float64")
     p_ren.add_argument("--spacing", type=float, default=None, help="reference: surface sample spacing in mm")
-    p_ren.add_argument("--eps", type=float, default=0.01, help="reference: tolerance of the default spacing")
+    p_ren.add_argument("--eps", type=float, default=0.01,
+                       help="reference: tolerance of the default spacing; splat: the splat budget's tolerance")
     p_ren.add_argument("--shadows", default="raytrace", choices=["raytrace", "shadowmap", "none"],
                        help="reference: visibility of the lights")
     p_ren.add_argument("--atlas-resolution", type=int, default=512,
@@ -220,6 +221,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
                            threshold=args.threshold,
                            blend=False if args.no_blend else {"auto": None, "on": True, "off": False}[args.blend])
+        elif args.method == "splat":
+            options["eps"] = args.eps
         elif args.method == "caustics":
             options.pop("progress")
             if args.caustic_grid is not None:

@@ -5,6 +5,7 @@ from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTransluc
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
 from torchsss.modules.material import POSITIVE_FLOOR, BurleyMaterial, DipoleMaterial, TabulatedMaterial
 from torchsss.modules.profile import DipoleProfile
+from torchsss.modules.splat import SplatTranslucency
 
 __all__ = [
     "POSITIVE_FLOOR",
@@ -18,5 +19,6 @@ __all__ = [
     "IrradianceAtlas",
     "LenschTranslucency",
     "LocalResponse",
+    "SplatTranslucency",
     "TabulatedMaterial",
 ]

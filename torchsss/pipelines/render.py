@@ -4,7 +4,7 @@ This is the one entry point the CLI, tests and benchmarks share, so that every m
 the same input.
 
 Methods register here as ``name -> function(scene, mesh, **options) -> RenderResult``. This issue ships
-``"reference"``, ``"lensch"``, ``"icdf"`` and ``"hybrid"``; ``"splat"`` adds its name when it lands.
+``"reference"``, ``"lensch"``, ``"icdf"``, ``"hybrid"``, ``"splat"`` and ``"caustics"``.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from torchsss.pipelines.caustics import render_caustics
 from torchsss.pipelines.chang import render_hybrid, render_icdf
 from torchsss.pipelines.lensch import render_lensch
 from torchsss.pipelines.reference import RenderResult, render_reference
+from torchsss.pipelines.splat import render_splat
 from torchsss.scene import Scene
 
 __all__ = ["METHODS", "render_scene"]
@@ -39,6 +40,10 @@ def _icdf(scene: Scene, mesh: Mesh, **options) -> RenderResult:
 
 def _hybrid(scene: Scene, mesh: Mesh, **options) -> RenderResult:
     return render_hybrid(mesh, scene.material, scene.lights, scene.camera, **options)
+
+
+def _splat(scene: Scene, mesh: Mesh, **options) -> RenderResult:
+    return render_splat(mesh, scene.material, scene.lights, scene.camera, **options)
 
 
 def _caustics(scene: Scene, mesh: Mesh, *, dtype: torch.dtype = torch.float32, progress: bool = False,
@@ -64,7 +69,7 @@ def _caustics(scene: Scene, mesh: Mesh, *, dtype: torch.dtype = torch.float32, p
 
 #: Rendering methods by name.
 METHODS: dict[str, Callable[..., RenderResult]] = {"reference": _reference, "lensch": _lensch, "icdf": _icdf,
-                                                   "hybrid": _hybrid, "caustics": _caustics}
+                                                   "hybrid": _hybrid, "caustics": _caustics, "splat": _splat}
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,
