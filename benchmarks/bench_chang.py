@@ -58,7 +58,6 @@ import torch
 from torchsss.bench import write_results
 from torchsss.geometry.atlas import build_atlas
 from torchsss.geometry.gbuffer import camera_gbuffer
-from torchsss.geometry.lights import PointLight
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.procedural import sphere
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
@@ -326,11 +325,8 @@ def hybrid_vs_pure(prep: Prepared, obj: str, size: float, ns, cs, seeds: int) ->
 
 def scaled_igea_setup(size_mm: float):
     """Lights and camera of ``examples/scenes/igea.json`` (30 mm) scaled to ``size_mm``; and its material."""
-    scene = load_scene(IGEA_SCENE)
-    f = size_mm / float(scene.size_mm)
-    lights = [PointLight(tuple(f * p for p in light.position), tuple(f * f * i for i in light.intensity))
-              for light in scene.lights]
-    camera = dataclasses.replace(scene.camera, eye=tuple(f * e for e in scene.camera.eye))
+    scene = load_scene(IGEA_SCENE).rescaled(size_mm)
+    lights, camera = list(scene.lights), scene.camera
     return scene.material, lights, camera
 
 

@@ -46,7 +46,6 @@ from torchsss.geometry.lensch import (
     plan_kernel_size,
     vertex_weights,
 )
-from torchsss.geometry.lights import PointLight
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.procedural import plane
 from torchsss.geometry.sampling import surface_samples
@@ -348,11 +347,9 @@ def bunny_scene(width: int, faces: int = 20000):
     20k faces are the issue's "~10k vertices" (10,038); the earlier records labelled ``bunny5k`` used 10k faces
     (5,029 vertices).
     """
-    scene = load_scene(ROOT / "examples" / "scenes" / "bunny.json")
-    f = 30.0 / float(scene.size_mm)
-    lights = [PointLight(tuple(f * p for p in light.position), tuple(f * f * i for i in light.intensity))
-              for light in scene.lights]
-    cam = dataclasses.replace(scene.camera, eye=tuple(f * e for e in scene.camera.eye), width=width, height=width)
+    scene = load_scene(ROOT / "examples" / "scenes" / "bunny.json").rescaled(30.0)
+    cam = dataclasses.replace(scene.camera, width=width, height=width)
+    lights = list(scene.lights)
     mesh = load_mesh(BUNNY, 30.0, decimate_to=faces, warn_open=False)
     return mesh, scene.material, lights, cam
 

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import torch
 
-from torchsss.geometry.lights import PointLight
 from torchsss.geometry.loading import load_mesh
 from torchsss.io import tonemap, write_exr, write_png
 from torchsss.pipelines.chang import build_icdf, render_icdf
@@ -99,12 +98,9 @@ def main(argv=None) -> int:
               f"relative to the repository root; pass --mesh PATH)", file=sys.stderr)
         return 1
 
-    scene = load_scene(ROOT / "examples" / "scenes" / "igea.json")
-    f = args.size_mm / float(scene.size_mm)
-    lights = [PointLight(tuple(f * p for p in light.position), tuple(f * f * i for i in light.intensity))
-              for light in scene.lights]
-    camera = dataclasses.replace(scene.camera, eye=tuple(f * e for e in scene.camera.eye),
-                                 width=args.resolution, height=args.resolution)
+    scene = load_scene(ROOT / "examples" / "scenes" / "igea.json").rescaled(args.size_mm)
+    lights = list(scene.lights)
+    camera = dataclasses.replace(scene.camera, width=args.resolution, height=args.resolution)
     material = scene.material
     t0 = time.perf_counter()
     mesh = load_mesh(args.mesh, args.size_mm, decimate_to=args.faces, warn_open=False)

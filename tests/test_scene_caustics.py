@@ -1,4 +1,4 @@
-"""The scene file's "caustics" block and `render --method caustics` (Shah ch. 5 through the render registry)."""
+"""Scene files: the "caustics" block, `render --method caustics` (Shah ch. 5), rescaling a scene to another size."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from torchsss.cli import main
+from torchsss.geometry.lights import surface_irradiance
 from torchsss.pipelines.render import render_scene
 from torchsss.scene import Caustics, Scene
 
@@ -61,3 +62,23 @@ def test_cli_renders_a_caustics_scene(tmp_path):
     assert (tmp_path / "glass.exr").is_file() and (tmp_path / "glass.png").is_file()
     summary = json.loads((tmp_path / "glass.json").read_text())
     assert summary["method"] == "caustics" and summary["options"]["resolution"] == 48
+
+
+def test_rescaled_scene_keeps_the_irradiance_at_corresponding_points():
+    s = Scene.from_dict({**BASE, "lights": [{"type": "point", "position": [10.0, -20.0, 60.0], "intensity": 5e3},
+                                            {"type": "directional", "direction": [0, 0, -1], "irradiance": 1.0}],
+                         "caustics": CAUSTICS})
+    t = s.rescaled(10.0)
+    f = 10.0 / 34.64
+    assert t.size_mm == 10.0 and t.camera.eye == pytest.approx(tuple(f * e for e in s.camera.eye))
+    assert t.caustics.receiver_size_mm == pytest.approx(60 * f)
+    assert t.lights[1] == s.lights[1]  # directional: unchanged
+    pts = torch.tensor([[[1.0, 2.0, 3.0], [-4.0, 0.5, -2.0]]], dtype=torch.float64)
+    nrm = torch.tensor([[[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]]], dtype=torch.float64)
+    e_s = surface_irradiance(pts, nrm, list(s.lights), 1.3)
+    e_t = surface_irradiance(f * pts, nrm, list(t.lights), 1.3)
+    torch.testing.assert_close(e_t, e_s, rtol=1e-10, atol=0.0)
+    with pytest.raises(ValueError, match="size_mm"):
+        s.rescaled(0.0)
+    with pytest.raises(ValueError, match="size_mm"):
+        Scene.from_dict({k: v for k, v in BASE.items() if k != "size_mm"}).rescaled(10.0)

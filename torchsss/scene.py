@@ -34,6 +34,7 @@ The receiver plane faces +z; the lights must be point or directional lights.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -228,6 +229,46 @@ class Scene:
             base_dir=base,
             caustics=None if d.get("caustics") is None else Caustics.from_dict(d["caustics"]),
         )
+
+    def rescaled(self, size_mm: float) -> Scene:
+        """The same scene for the object at another size (mm): what was at x is now at ``f x``.
+
+        Positions (light positions, the camera's eye and target, the caustics receiver) scale by
+        :math:`f = ` ``size_mm / self.size_mm``; point and spot intensities by :math:`f^2`, so the irradiance at
+        corresponding points is unchanged; directional lights are unchanged. Only the object's size in mm (and so
+        how translucent it looks) changes.
+
+        Raises:
+            ValueError: the scene has no ``size_mm`` or ``size_mm`` is not a positive finite number.
+
+        Examples:
+            >>> s = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "skin1",
+            ...     "lights": [{"type": "point", "position": [0, 0, 100], "intensity": 1e4}],
+            ...     "camera": {"eye": [0, 0, 80], "target": [0, 0, 0], "width": 8, "height": 8}})
+            >>> t = s.rescaled(10.0)
+            >>> t.size_mm, t.lights[0].position, t.lights[0].intensity, t.camera.eye
+            (10.0, (0.0, 0.0, 50.0), (2500.0, 2500.0, 2500.0), (0.0, 0.0, 40.0))
+        """
+        if self.size_mm is None:
+            raise ValueError("size_mm: expected a scene with size_mm to rescale, got a scene in the file's units")
+        if isinstance(size_mm, bool) or not isinstance(size_mm, (int, float)) or not (
+                math.isfinite(size_mm) and size_mm > 0):
+            raise ValueError(f"size_mm: expected a finite number > 0 (mm), got {size_mm!r}")
+        f = float(size_mm) / float(self.size_mm)
+        lights = []
+        for light in self.lights:
+            if hasattr(light, "position"):
+                light = dataclasses.replace(light, position=tuple(f * p for p in light.position),
+                                            intensity=tuple(f * f * i for i in light.intensity))
+            lights.append(light)
+        camera = dataclasses.replace(self.camera, eye=tuple(f * e for e in self.camera.eye),
+                                     target=tuple(f * t for t in self.camera.target))
+        caustics = self.caustics
+        if caustics is not None:
+            caustics = dataclasses.replace(caustics, receiver_size_mm=f * caustics.receiver_size_mm,
+                                           receiver_center=tuple(f * c for c in caustics.receiver_center))
+        return dataclasses.replace(self, size_mm=float(size_mm), lights=tuple(lights), camera=camera,
+                                   caustics=caustics)
 
     def mesh_source(self) -> str:
         """The mesh argument for :func:`~torchsss.geometry.loading.load_mesh`: a built-in name or a resolved path."""
