@@ -590,3 +590,26 @@ def test_lowpass_closes_splat_gaps_and_keeps_the_flux(references):
     assert err_smooth < 0.6 * err_plain, (err_smooth, err_plain)
     with pytest.raises(ValueError, match="lowpass_sigma_px"):
         CausticMap(1.5, lowpass_sigma_px=-1.0)
+
+
+def test_caustic_map_gradcheck():
+    """float64 gradcheck of the whole module: w.r.t. the light's intensity and the receiver positions (the
+    Newton-Raphson lookups are bilinear, the splats Gaussian, so the map is smooth in both away from edges)."""
+    gb = sphere_gbuffers(8)
+    module = CausticMap(1.5, 0.02, sigma_px=1.5)
+    floor = floor_texture(12)
+    vp = ortho_view_proj()
+
+    def by_intensity(i):
+        return module(*gb, floor, DOWN, i, vp)
+
+    def by_floor_height(z):
+        return module(*gb, torch.cat([floor[:, :2], floor[:, 2:] + z], 1), DOWN, torch.ones(1, 1, dtype=F64), vp)
+
+    i = torch.tensor([[1.3]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(by_intensity, (i,))
+    z = torch.zeros(1, 1, 12, 12, dtype=F64, requires_grad=True)
+    assert float(by_floor_height(z.detach()).sum()) > 0  # the map is not empty, so the check has content
+    assert torch.autograd.gradcheck(by_floor_height, (z,), eps=1e-6, atol=1e-6)
+    (grad,) = torch.autograd.grad((by_floor_height(z) * torch.arange(144, dtype=F64).view(1, 1, 12, 12)).sum(), z)
+    assert float(grad.abs().max()) > 0  # moving the floor moves the caustic: the gradient is not trivially zero

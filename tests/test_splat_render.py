@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+from torch.func import functional_call
 
 from torchsss.geometry import sphere
 from torchsss.geometry.camera import Camera
@@ -92,3 +93,26 @@ def test_method_splat_in_the_registry():
     res = render_scene(Scene.from_dict(SCENE), "splat")
     assert res.radiance.shape == (1, 3, 32, 32) and bool(res.mask.any())
     assert res.stats["grid"] > 1 and res.stats["splats"] > 0
+
+
+def test_module_gradcheck_wrt_flux_and_material():
+    g = torch.Generator().manual_seed(1)
+    src = torch.rand(1, 6, 3, generator=g, dtype=torch.float64) * 4 - 2
+    src[..., 2] = 0.0
+    cam = Camera(eye=(0.0, 0.0, 30.0), target=(0.0, 0.0, 0.0), width=5, height=5, fov_deg=15.0)
+    vp = cam.view_proj(dtype=torch.float64)
+    axis = torch.linspace(-3, 3, 5, dtype=torch.float64)
+    ys, xs = torch.meshgrid(axis, axis, indexing="ij")
+    pos = torch.stack([xs, -ys, torch.zeros_like(xs)]).unsqueeze(0)
+    mask = torch.ones(1, 1, 5, 5, dtype=torch.bool)
+    mat = DipoleMaterial.from_preset("skin1", dtype=torch.float64)
+    m = SplatTranslucency(mat)
+    flux = torch.rand(1, 6, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f: m(src, f, pos, mask, vp), (flux,))
+
+    def by_material(raw_sa, raw_ss):  # the module's own parameters as the gradcheck inputs
+        params = {"material.raw_sigma_a": raw_sa, "material.raw_sigma_s_prime": raw_ss}
+        return functional_call(m, params, (src, flux.detach(), pos, mask, vp))
+
+    raw = (mat.raw_sigma_a.detach().clone().requires_grad_(), mat.raw_sigma_s_prime.detach().clone().requires_grad_())
+    assert torch.autograd.gradcheck(by_material, raw)

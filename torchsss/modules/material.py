@@ -267,7 +267,9 @@ class TabulatedMaterial(nn.Module):
     kernel tap and throughput entry by a gather and a lerp.
 
     ``sigma_a``, ``sigma_s_prime`` and ``eta`` are those of the wrapped material, so closed-form terms (the
-    disk self term of the Lensch modules) stay exact.
+    disk self term of the Lensch modules) stay exact. Gradients hold the table's nodes fixed (its range is a
+    discrete budget): they are those of the interpolated profile and converge to the dipole's as ``size`` grows
+    (relative error 1.4e-3 at 64 nodes, 3.7e-6 at 1024, 5e-8 at 8192; tested).
 
     Args:
         material: the :class:`DipoleMaterial` to tabulate (a submodule: its parameters are this module's).
