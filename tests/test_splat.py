@@ -385,6 +385,16 @@ def test_tiny_images_and_chunking(method, monkeypatch):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-16)
 
 
+def test_auto_picks_the_scatter_form_when_splats_outnumber_pixels():
+    src_pos, flux, dst, mask, vp = _plane_scene(s=400, h=6, w=7)
+    sa, ss, eta = preset("skin2").tensors(F64)
+    assert int(mask.sum()) < 400
+    auto = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
+    window = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window")
+    torch.testing.assert_close(auto, window, rtol=0, atol=0)
+    assert float(window.amax()) > 0
+
+
 def test_batch_elements_are_independent_and_methods_agree():
     src_pos, flux, dst, mask, vp = _plane_scene(s=40)
     sa, ss, eta = preset("skin2").tensors(F64)
@@ -404,6 +414,8 @@ def test_batch_elements_are_independent_and_methods_agree():
         )
         torch.testing.assert_close(full["window"][bb : bb + 1], one, rtol=1e-12, atol=1e-16)
     torch.testing.assert_close(full["tile"], full["window"], rtol=1e-12, atol=1e-16)
+    # auto: 40 splats per element, fewer than the covered pixels -> the gather form, bit for bit
+    assert int(mask[0].sum()) > 40
     torch.testing.assert_close(full["auto"], full["tile"], rtol=0, atol=0)
 
 

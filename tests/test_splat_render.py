@@ -111,7 +111,7 @@ def test_module_gradcheck_wrt_flux_and_material():
     assert torch.autograd.gradcheck(lambda f: m(src, f, pos, mask, vp), (flux,))
 
     def by_material(raw_sa, raw_ss):  # the module's own parameters as the gradcheck inputs
-        params = {"material.raw_sigma_a": raw_sa, "material.raw_sigma_s_prime": raw_ss}
+        params = {"materials.0.raw_sigma_a": raw_sa, "materials.0.raw_sigma_s_prime": raw_ss}
         return functional_call(m, params, (src, flux.detach(), pos, mask, vp))
 
     raw = (mat.raw_sigma_a.detach().clone().requires_grad_(), mat.raw_sigma_s_prime.detach().clone().requires_grad_())

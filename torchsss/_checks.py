@@ -8,6 +8,7 @@ need to look at tensor data are skipped while a graph is being traced, compiled 
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -107,6 +108,21 @@ def check_positive(x: Tensor, name: str) -> None:
         return
     _report(x, ~torch.isfinite(x) | (x <= 0), name, "finite values > 0")
 
+
+
+def check_int(value: object, name: str, minimum: int, maximum: int | None = None) -> int:
+    """Return ``value`` as an int, or raise TypeError (not an integer; bools are refused) / ValueError (out of range).
+
+    Examples:
+        >>> check_int(3, "layers", 1)
+        3
+    """
+    expected = f"an int >= {minimum}" if maximum is None else f"an int in [{minimum}, {maximum}]"
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name}: expected {expected}, got {type(value).__name__}")
+    if value < minimum or (maximum is not None and value > maximum):
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+    return int(value)
 
 def check_shape(x: Tensor, name: str, dims: str, **known: int) -> dict[str, int]:
     """Check ``x`` against a named-dimension pattern such as ``"B,N,3"`` and return the sizes found.

@@ -34,6 +34,8 @@ from typing import Any
 
 import torch
 
+from torchsss._checks import check_int
+
 __all__ = [
     "benchmark_parser",
     "compare",
@@ -59,13 +61,6 @@ def _check_callable(fn: object, name: str) -> None:
         raise TypeError(f"{name}: expected a callable, got {type(fn).__name__}")
 
 
-def _check_int(value: object, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {value!r}")
-    return int(value)
-
 
 def _check_seconds(value: object, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -84,7 +79,7 @@ def _check_name(value: object, name: str) -> str:
 
 
 def _timing_args(repeats: object, warmup: object, min_time_s: object) -> tuple[int, int, float]:
-    return (_check_int(repeats, "repeats", 1), _check_int(warmup, "warmup", 0),
+    return (check_int(repeats, "repeats", 1), check_int(warmup, "warmup", 0),
             _check_seconds(min_time_s, "min_time_s"))
 
 

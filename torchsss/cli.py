@@ -145,8 +145,12 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     write_exr(out, image)
     png = out.with_suffix(".png")
     write_png(png, tonemap(image))
-    summary = {"scene": str(path), "method": method, "mesh": scene.mesh, "size_mm": scene.size_mm,
-               "material": dataclasses.asdict(scene.material), "width": scene.camera.width,
+    if scene.objects:
+        what = {"objects": [{"mesh": o.mesh, "size_mm": o.size_mm, "translate": list(o.translate),
+                             "material": dataclasses.asdict(o.material)} for o in scene.objects]}
+    else:
+        what = {"mesh": scene.mesh, "size_mm": scene.size_mm, "material": dataclasses.asdict(scene.material)}
+    summary = {"scene": str(path), "method": method, **what, "width": scene.camera.width,
                "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "seconds": seconds,
                "options": {k: v for k, v in options.items() if k != "progress"},
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),

@@ -7,6 +7,8 @@ and irradiance with Fresnel and shadows. All lengths are millimetres.
 
 from torchsss.geometry.atlas import Atlas, build_atlas, parameterize
 from torchsss.geometry.camera import Camera, look_at, orthographic, perspective, pixel_centers_ndc, transform_points
+from torchsss.geometry.coherence import AttachedSamples, attach_light_view, coherent_light_samples
+from torchsss.geometry.environment import EnvironmentLight, environment_irradiance
 from torchsss.geometry.gbuffer import GBuffer, LightView, camera_gbuffer, light_view
 from torchsss.geometry.lensch import (
     BlendWeights,
@@ -32,17 +34,22 @@ from torchsss.geometry.lights import (
 )
 from torchsss.geometry.loading import builtin_mesh_names, builtin_mesh_path, load_mesh
 from torchsss.geometry.mesh import Mesh, MeshWarning, decimate, mesh_from_arrays, normalize_to_size
+from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
+from torchsss.geometry.peel import EnvironmentSplats, axis_camera, environment_splats
 from torchsss.geometry.procedural import plane, slab, sphere, torus
-from torchsss.geometry.raster import Raster, interpolate, rasterize, rasterize_uv
+from torchsss.geometry.raster import Raster, depth_peel, interpolate, rasterize, rasterize_uv
 from torchsss.geometry.sampling import SurfaceSamples, subdivision_barycentrics, surface_samples
 from torchsss.geometry.shadow import ShadowMap, bounding_sphere, build_shadow_map, light_camera, shadow_visibility
 from torchsss.geometry.visibility import point_inside, ray_visibility
 
 __all__ = [
     "Atlas",
+    "AttachedSamples",
     "BlendWeights",
     "Camera",
     "DirectionalLight",
+    "EnvironmentLight",
+    "EnvironmentSplats",
     "GBuffer",
     "Light",
     "LightView",
@@ -56,6 +63,8 @@ __all__ = [
     "SurfaceSamples",
     "Throughput",
     "VertexWeights",
+    "attach_light_view",
+    "axis_camera",
     "blending_weights",
     "bounding_sphere",
     "build_atlas",
@@ -64,7 +73,11 @@ __all__ = [
     "builtin_mesh_names",
     "builtin_mesh_path",
     "camera_gbuffer",
+    "coherent_light_samples",
     "decimate",
+    "depth_peel",
+    "environment_irradiance",
+    "environment_splats",
     "incident_light",
     "interpolate",
     "light_camera",
@@ -73,8 +86,11 @@ __all__ = [
     "load_mesh",
     "local_kernel_geometry",
     "look_at",
+    "merge_meshes",
     "mesh_from_arrays",
     "normalize_to_size",
+    "object_ids",
+    "object_masks",
     "orthographic",
     "parameterize",
     "perspective",

@@ -109,6 +109,9 @@ class LightView(NamedTuple):
         mask: :math:`(1, 1, H, W)` bool, pixel sees the object (and receives light).
         face_id: :math:`(1, 1, H, W)` int64, -1 where nothing is seen.
         camera: the light camera (:func:`~torchsss.geometry.shadow.light_camera`).
+        bary: :math:`(1, 3, H, W)` the raster's barycentric weights of ``face_id``'s vertices (zeros where
+            nothing is seen); with ``face_id`` they attach a pixel's sample to the surface
+            (:mod:`torchsss.geometry.coherence`).
     """
 
     position: Tensor
@@ -119,6 +122,7 @@ class LightView(NamedTuple):
     mask: Tensor
     face_id: Tensor
     camera: Camera
+    bary: Tensor
 
 
 def light_view(
@@ -191,4 +195,4 @@ def light_view(
         return x.transpose(1, 2).reshape(x.shape[0], -1, h, w)
 
     return LightView(position, normal, _img(irradiance), _img(area.unsqueeze(-1)), _img(flux), mask,
-                     raster.face_id, cam)
+                     raster.face_id, cam, raster.bary)

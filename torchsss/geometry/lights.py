@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from torchsss._checks import check_shape, check_tensor
+from torchsss.geometry.environment import EnvironmentLight, environment_irradiance
 from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
 
 __all__ = [
@@ -139,7 +140,7 @@ class SpotLight:
         object.__setattr__(self, "inner_deg", inner)
 
 
-Light = PointLight | DirectionalLight | SpotLight
+Light = PointLight | DirectionalLight | SpotLight | EnvironmentLight
 
 _LIGHT_KEYS = {
     "point": ({"position", "intensity"}, set()),
@@ -158,8 +159,10 @@ def light_from_dict(d: Mapping) -> Light:
     if not isinstance(d, Mapping):
         raise TypeError(f"light: expected a JSON object, got {type(d).__name__}")
     kind = d.get("type")
+    if kind == "environment":
+        return EnvironmentLight.from_dict(d)
     if kind not in _LIGHT_KEYS:
-        raise ValueError(f"light type: expected one of {sorted(_LIGHT_KEYS)}, got {kind!r}")
+        raise ValueError(f"light type: expected one of {[*sorted(_LIGHT_KEYS), 'environment']}, got {kind!r}")
     required, optional = _LIGHT_KEYS[kind]
     keys = set(d) - {"type"}
     if missing := required - keys:
@@ -239,7 +242,9 @@ def surface_irradiance(
         lights: one light or a sequence of lights (their contributions add up).
         eta: relative index of refraction of the material (scalar or 0-dim tensor).
         visibility: per light a :math:`(B, N)` tensor in [0, 1] (1 = lit) or None (unshadowed); a single
-            tensor is accepted when there is one light.
+            tensor is accepted when there is one light. An :class:`~torchsss.geometry.environment.EnvironmentLight`
+            is always unshadowed (its entry must be None), see
+            :func:`~torchsss.geometry.environment.environment_irradiance`.
         fresnel: ``"exact"`` (unpolarised dielectric, the default), ``"schlick"`` or ``"none"``.
 
     Returns:
@@ -256,7 +261,8 @@ def surface_irradiance(
     check_shape(normals, "normals", "B,N,3", **dims)
     if fresnel not in ("exact", "schlick", "none"):
         raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
-    light_list = [lights] if isinstance(lights, (PointLight, DirectionalLight, SpotLight)) else list(lights)
+    single = (PointLight, DirectionalLight, SpotLight, EnvironmentLight)
+    light_list = [lights] if isinstance(lights, single) else list(lights)
     if isinstance(visibility, Tensor) or visibility is None:
         vis_list = [visibility] * len(light_list) if visibility is None else [visibility]
     else:
@@ -265,6 +271,11 @@ def surface_irradiance(
         raise ValueError(f"visibility: expected one entry per light ({len(light_list)}), got {len(vis_list)}")
     total = torch.zeros(*points.shape[:-1], 3, dtype=points.dtype, device=points.device)
     for light, vis in zip(light_list, vis_list):
+        if isinstance(light, EnvironmentLight):
+            if vis is not None:
+                raise ValueError("visibility: expected None for an environment light (it is unshadowed), got a tensor")
+            total = total + environment_irradiance(light, normals, eta, fresnel=fresnel)
+            continue
         to_light, _, e = incident_light(light, points)
         cos = (normals * to_light).sum(-1).clamp_min(0.0)
         if fresnel == "exact":

@@ -47,20 +47,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchsss._checks import check_nonnegative, check_positive, check_shape, check_tensor, is_tracing
+from torchsss._checks import check_int, check_nonnegative, check_positive, check_shape, check_tensor, is_tracing
 from torchsss.ops.icdf import MAX_LEVELS, icdf_sample
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS, reference_radiosity
 from torchsss.physics.budget import chang_rp, chang_weights
 
 __all__ = ["ChangLocalProfile", "HybridTranslucency", "ImportanceSampledTranslucency", "SplitProfile"]
 
-
-def _check_int(value: object, name: str, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {value}")
-    return value
 
 
 def _check_number(value: object, name: str, *, positive: bool = True) -> float:
@@ -149,7 +142,7 @@ class ImportanceSampledTranslucency(nn.Module):
             if not 0 <= levels <= MAX_LEVELS or 2**levels < max(dims["H"], dims["W"]):
                 raise ValueError(f"levels: expected an int in [0, {MAX_LEVELS}] with 2**levels >= "
                                  f"{max(dims['H'], dims['W'])}, got {levels}")
-        _check_int(max_pairs, "max_pairs", 1)
+        check_int(max_pairs, "max_pairs", 1)
         h, w = dims["H"], dims["W"]
         ch = _material_channels(material)
         chans = (1,) if ch in (None, 1) else (1, ch)
@@ -422,9 +415,9 @@ class HybridTranslucency(nn.Module):
         max_pairs: int = DEFAULT_MAX_PAIRS,
     ) -> None:
         super().__init__()
-        rings = _check_int(rings, "rings", 1)
-        per_ring = _check_int(per_ring, "per_ring", 1)
-        grid = _check_int(grid, "grid", 8)
+        rings = check_int(rings, "rings", 1)
+        per_ring = check_int(per_ring, "per_ring", 1)
+        grid = check_int(grid, "grid", 8)
         k = _check_number(k, "k")
         local_eps = _check_number(local_eps, "local_eps")
         if local_eps >= 0.5:

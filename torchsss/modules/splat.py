@@ -2,11 +2,16 @@
 
 No precomputation: every frame takes light-view samples (positions, :math:`E\\,dA`) and a camera-view G-buffer,
 and splats :math:`R_d(|x_o - x_i|)\\,E_i\\,dA_i` onto the camera pixels within :math:`r_{max}` of each sample
-(:func:`torchsss.ops.splat.splat_radiosity`), so deforming objects work unchanged. Lengths in mm.
+(:func:`torchsss.ops.splat.splat_radiosity`), so deforming objects work unchanged. Several objects of different
+materials render in one pass through a material table and object ids (Shah 6.4.3), and heterogeneous materials
+through per-splat distance and irradiance modifiers (Shah eq. 7.4). Lengths in mm.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import torch
 from torch import Tensor, nn
 
 from torchsss.modules.material import DipoleMaterial
@@ -16,14 +21,17 @@ __all__ = ["SplatTranslucency"]
 
 
 class SplatTranslucency(nn.Module):
-    """Radiosity image :math:`B(x_o) = \\sum_i R_d(|x_o - x_i|)\\,E_i\\,dA_i` from light-view splats.
+    """Radiosity image :math:`B(x_o) = \\sum_i M_{i,i} R_d^{m_i}(|x_o - x_i| M_{d,i})\\,E_i\\,dA_i` from splats.
 
     Args:
-        material: the :class:`~torchsss.DipoleMaterial` (its parameters receive gradients).
+        material: a :class:`~torchsss.DipoleMaterial`, or a sequence of them (the material table, one row per
+            material; sources pick their row with ``src_material``). Their parameters receive gradients.
         eps: tail fraction beyond the splat radius :math:`r_{max}(\\epsilon)` (Shah eq. 6.16), per channel; the
-            largest channel's radius is used. Fixed when the module is built (a budget is not differentiable).
+            largest channel's radius of each material is used. Fixed when the module is built (a budget is not
+            differentiable): rebuild the module after large material changes.
         method: ``"auto"`` (tile gather in eager mode, window scatter while exporting), ``"window"`` or ``"tile"``.
-        window: fixed window size for the export path (see :func:`~torchsss.ops.splat.splat_radiosity`).
+        window: fixed odd window size in pixels for the export path (see :func:`~torchsss.ops.splat.splat_radiosity`
+            and :func:`~torchsss.ops.splat.splat_window_size`); required to export.
 
     Examples:
         >>> import torch
@@ -33,23 +41,51 @@ class SplatTranslucency(nn.Module):
         >>> vp = torch.eye(4).unsqueeze(0)
         >>> m(src, flux, pos, mask, vp).shape
         torch.Size([1, 3, 4, 4])
+        >>> two = SplatTranslucency([DipoleMaterial.from_preset("skin1"), DipoleMaterial.from_preset("marble")])
+        >>> ids = torch.tensor([[1]])
+        >>> two(src, flux, pos, mask, vp, src_material=ids).shape
+        torch.Size([1, 3, 4, 4])
     """
 
-    def __init__(self, material: DipoleMaterial, *, eps: float = 0.01, method: str = "auto",
-                 window: int | None = None) -> None:
+    def __init__(self, material: DipoleMaterial | Sequence[DipoleMaterial], *, eps: float = 0.01,
+                 method: str = "auto", window: int | None = None) -> None:
         super().__init__()
-        if not isinstance(material, DipoleMaterial):
-            raise TypeError(f"material: expected a DipoleMaterial, got {type(material).__name__}")
-        if not 0.0 < float(eps) < 1.0:
+        materials = [material] if isinstance(material, nn.Module) else material
+        if isinstance(materials, (str, bytes)) or not isinstance(materials, Sequence) or len(materials) == 0:
+            raise TypeError(
+                f"material: expected a DipoleMaterial or a non-empty sequence of them, got {type(material).__name__}"
+            )
+        for i, m in enumerate(materials):
+            if not isinstance(m, DipoleMaterial):
+                raise TypeError(f"material[{i}]: expected a DipoleMaterial, got {type(m).__name__}")
+        channels = {m.channels for m in materials}
+        if len(channels) != 1:
+            raise ValueError(f"material: expected the same number of channels in every material, got {channels}")
+        if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 < float(eps) < 1.0:
             raise ValueError(f"eps: expected a number in (0, 1), got {eps!r}")
-        self.material = material
+        self.materials = nn.ModuleList(materials)
         self.eps = float(eps)
         self.method = method
         self.window = window
-        self.register_buffer("r_max", material.r_max(self.eps).amax().reshape(1).detach().clone())
+        r_max = torch.stack([m.r_max(self.eps).amax() for m in materials]).detach().clone()
+        self.register_buffer("r_max", r_max)
 
-    def forward(self, src_pos: Tensor, src_flux: Tensor, dst_pos: Tensor, dst_mask: Tensor,
-                view_proj: Tensor) -> Tensor:
+    @property
+    def material(self) -> DipoleMaterial:
+        """The first (with one material, the only) row of the material table."""
+        return self.materials[0]
+
+    def tables(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The material table: ``sigma_a`` and ``sigma_s_prime`` :math:`(M, C)` (mm^-1), ``eta`` :math:`(M,)`."""
+        sa = torch.stack([m.sigma_a.reshape(-1) for m in self.materials])
+        ss = torch.stack([m.sigma_s_prime.reshape(-1) for m in self.materials])
+        eta = torch.stack([m.eta.reshape(()) for m in self.materials])
+        return sa, ss, eta
+
+    def forward(self, src_pos: Tensor, src_flux: Tensor, dst_pos: Tensor, dst_mask: Tensor, view_proj: Tensor,
+                src_material: Tensor | None = None, src_object: Tensor | None = None,
+                dst_object: Tensor | None = None, src_distance_scale: Tensor | None = None,
+                src_irradiance_scale: Tensor | None = None) -> Tensor:
         """Splat the sources onto the camera view.
 
         Args:
@@ -58,10 +94,20 @@ class SplatTranslucency(nn.Module):
             dst_pos: :math:`(B, 3, H, W)` camera-view positions, mm.
             dst_mask: :math:`(B, 1, H, W)` bool, pixels that see the object.
             view_proj: :math:`(B, 4, 4)` or :math:`(4, 4)` camera view-projection.
+            src_material: :math:`(B, S)` integer row of the material table per source (required with several
+                materials).
+            src_object: :math:`(B, S)` integer object id per source; with ``dst_object``, light scatters only
+                within an object (Shah 6.4.3).
+            dst_object: :math:`(B, 1, H, W)` integer object id per pixel.
+            src_distance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` distance multiplier :math:`M_d > 0` at the
+                source (Shah eq. 7.4; below 1 the profile widens, the light spreads farther).
+            src_irradiance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` irradiance modulation :math:`M_i \\ge 0`.
 
         Returns:
             :math:`(B, C, H, W)` radiosity (0 off the mask).
         """
-        m = self.material
-        return splat_radiosity(src_pos, src_flux, dst_pos, dst_mask, view_proj, m.sigma_a, m.sigma_s_prime,
-                               m.eta, self.r_max, method=self.method, window=self.window)
+        sa, ss, eta = self.tables()
+        return splat_radiosity(src_pos, src_flux, dst_pos, dst_mask, view_proj, sa, ss, eta, self.r_max,
+                               src_material=src_material, src_object=src_object, dst_object=dst_object,
+                               src_distance_scale=src_distance_scale, src_irradiance_scale=src_irradiance_scale,
+                               method=self.method, window=self.window)

@@ -580,7 +580,9 @@ def splat_radiosity(
     pixel. ``method="tile"`` is the gather form: the covered pixels in tiles of ``tile_size`` :math:`^2`, each
     summing over the splats whose reach touches the tile's world-space bounding box; it needs neither
     ``view_proj`` nor a window and misses nothing, but cannot be exported. ``"auto"`` picks ``"window"`` while
-    tracing/exporting and ``"tile"`` otherwise (faster in ``benchmarks/bench_splat.py``).
+    tracing/exporting; in eager mode ``"tile"`` when the covered pixels outnumber the splats (with flux) and
+    ``"window"`` otherwise (the faster form in each regime in ``benchmarks/bench_splat.py`` and
+    ``benchmarks/bench_splat_render.py``).
 
     In eager mode, splats that cannot reach a pixel (off-screen or behind the camera for the window path; sources
     with zero flux unless ``src_flux``/``src_irradiance_scale`` require gradients) are dropped first, materials are
@@ -696,8 +698,9 @@ def splat_radiosity(
         _shape(dst_object, "dst_object", "B,1,H,W", **dims)
     md = None if src_distance_scale is None else _check_modifier(src_distance_scale, "src_distance_scale", dims)
     mi = None if src_irradiance_scale is None else _check_modifier(src_irradiance_scale, "src_irradiance_scale", dims)
-    if method == "auto":
-        method = "window" if tracing else "tile"
+    auto = method == "auto"
+    if auto:
+        method = "window"  # eager: refined below, once the sources without flux are dropped
     if tracing and method == "tile":
         raise ValueError(
             "method: expected 'window' while tracing/exporting (the tile path builds candidate lists "
@@ -771,6 +774,11 @@ def splat_radiosity(
         keep = torch.nonzero((flux != 0).any(-1)).squeeze(-1)
         if keep.numel() < n:
             src, mat = _take(src, keep), mat[keep]
+    if auto:
+        # measured rule (benchmarks/results/splat*.md): the gather form wins when receivers outnumber the sources
+        # (2-3x with 15k pixels and 0.3k-4.7k splats), the scatter form when the sources outnumber the receivers
+        # (1.3-7.7x with 2k pixels and 7k-19k splats, render_splat on the default scene)
+        method = "tile" if int(mask_flat.sum()) > src["pos"].shape[0] else "window"
     budget = int(max_memory_mb * (1 << 20))
     out = torch.zeros(c, b * h * w, dtype=dtype, device=dst_pos.device)
     if method == "window":

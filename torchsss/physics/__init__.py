@@ -33,8 +33,10 @@ from torchsss.physics.fresnel import (
 )
 from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table, profile_table_error
 from torchsss.physics.materials import MaterialPreset, preset, preset_names
+from torchsss.physics.sh import SH_COEFFS, fresnel_cosine_zonal, project_sh, sh_basis, sh_irradiance, sphere_quadrature
 
 __all__ = [
+    "SH_COEFFS",
     "DipoleTerms",
     "MaterialPreset",
     "ProfileTable",
@@ -50,6 +52,7 @@ __all__ = [
     "dipole_rd_shah",
     "dipole_spectrum",
     "dipole_terms",
+    "fresnel_cosine_zonal",
     "fresnel_reflectance",
     "fresnel_transmittance",
     "lookup_profile_table",
@@ -57,9 +60,13 @@ __all__ = [
     "preset_names",
     "profile_table_error",
     "profile_tail_fraction",
+    "project_sh",
     "r_max",
     "schlick_reflectance",
     "schlick_transmittance",
+    "sh_basis",
+    "sh_irradiance",
+    "sphere_quadrature",
     "splat_alias_error",
     "splat_count",
     "splat_overlap",

@@ -49,6 +49,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchsss._checks import check_int
 from torchsss.geometry.camera import Camera, transform_points
 from torchsss.geometry.lights import DirectionalLight, PointLight
 from torchsss.geometry.mesh import Mesh
@@ -141,13 +142,6 @@ def _check_light(light: object, name: str = "light") -> DirectionalLight | Point
     return light
 
 
-def _check_int(value: object, name: str, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name}: expected an int >= {minimum}, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name}: expected an int >= {minimum}, got {value}")
-    return int(value)
-
 
 def _check_number(value: object, name: str, minimum: float, inclusive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -181,7 +175,7 @@ def caustic_light_camera(refractor: Mesh, receiver: Mesh, light: DirectionalLigh
     _check_mesh(refractor, "refractor")
     _check_mesh(receiver, "receiver")
     _check_light(light)
-    resolution = _check_int(resolution, "resolution")
+    resolution = check_int(resolution, "resolution", 1)
     margin = _check_number(margin, "margin", 0.0)
     centre, radius = bounding_sphere(refractor)
     if not radius > 0:
@@ -252,8 +246,8 @@ def caustic_gbuffers(refractor: Mesh, receiver: Mesh, light: DirectionalLight | 
     _check_mesh(refractor, "refractor")
     _check_mesh(receiver, "receiver")
     _check_light(light)
-    resolution = _check_int(resolution, "resolution")
-    map_resolution = resolution if map_resolution is None else _check_int(map_resolution, "map_resolution")
+    resolution = check_int(resolution, "resolution", 1)
+    map_resolution = resolution if map_resolution is None else check_int(map_resolution, "map_resolution", 1)
     cam = caustic_light_camera(refractor, receiver, light, resolution, margin)
     dtype, device = refractor.vertices.dtype, refractor.vertices.device
     vp = cam.view_proj(dtype=dtype, device=device)
@@ -424,7 +418,7 @@ def render_caustics(
         raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
     if module is not None and not isinstance(module, CausticMap):
         raise TypeError(f"module: expected a CausticMap or None, got {type(module).__name__}")
-    shadow_resolution = _check_int(shadow_resolution, "shadow_resolution")
+    shadow_resolution = check_int(shadow_resolution, "shadow_resolution", 1)
     dtype, device = refractor.vertices.dtype, refractor.vertices.device
     if receiver.vertices.dtype != dtype or receiver.vertices.device != device:
         receiver = receiver.with_dtype(dtype).with_device(device)

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import GBuffer
 from torchsss.geometry.lights import Light, incident_light
 from torchsss.geometry.mesh import Mesh
@@ -40,6 +41,9 @@ def specular_radiance(gbuffer: GBuffer, lights: Sequence[Light], eta: float, *, 
         eta: relative index of refraction of the boundary.
         roughness: GGX alpha in (0, 1] (perceptual roughness squared is a common choice).
         visibility: per light an optional :math:`(B, H \\cdot W)` visibility, None for unshadowed.
+
+    Environment lights (:class:`~torchsss.geometry.environment.EnvironmentLight`) add no specular term here (their
+    entries are skipped): the glossy reflection of an environment is outside this library's subsurface scope.
 
     Examples:
         >>> from torchsss.geometry import Camera, PointLight, camera_gbuffer, sphere
@@ -62,6 +66,8 @@ def specular_radiance(gbuffer: GBuffer, lights: Sequence[Light], eta: float, *, 
     total = torch.zeros(b, h * w, 3, dtype=pts.dtype, device=pts.device)
     n_o = (n * v).sum(-1).clamp_min(0.0)
     for light, vis in zip(lights, vis_list):
+        if isinstance(light, EnvironmentLight):
+            continue
         to_l, _, e_perp = incident_light(light, pts)
         n_i = (n * to_l).sum(-1).clamp_min(0.0)
         half = torch.nn.functional.normalize(to_l + v, dim=-1, eps=1e-12)
@@ -86,6 +92,7 @@ def shadow_mapped_specular(mesh: Mesh, gbuffer: GBuffer, lights: Sequence[Light]
     Returns:
         :math:`(1, 3, H, W)` specular radiance.
     """
+    lights = [light for light in lights if not isinstance(light, EnvironmentLight)]
     pix = gbuffer.position.flatten(2).transpose(1, 2)
     pix_n = gbuffer.normal.flatten(2).transpose(1, 2)
     vis = [shadow_visibility(build_shadow_map(mesh, light, shadow_resolution), pix, pix_n, light) for light in lights]
