@@ -68,7 +68,7 @@ def test_object_ids_stop_light_at_the_object_boundary():
     dst_obj = (dst[:, :1] > 0).to(torch.int64)  # object 1: x > 0, object 0: x <= 0
     src, flux = _grid_sources(0.5, 8.0)
     src_obj = (src[..., 0] > 0).to(torch.int64)
-    m = SplatTranslucency(_mat("marble"))
+    m = SplatTranslucency(_mat("marble")).requires_grad_(False)
     clipped = m(src, flux, dst, mask, vp, src_object=src_obj, dst_object=dst_obj)
     left_only = m(src, flux * (src_obj == 0).unsqueeze(-1), dst, mask, vp)
     right_only = m(src, flux * (src_obj == 1).unsqueeze(-1), dst, mask, vp)
@@ -178,7 +178,7 @@ def test_unlit_object_renders_zeros_not_nan():
     away = SpotLight(position=(0.0, 0.0, 60.0), direction=(0.0, 0.0, 1.0), intensity=100.0, cone_deg=10.0)
     res = render_splat(mesh, Material.from_json("skin1"), [away], cam)
     assert bool(res.mask.any()) and bool(torch.isfinite(res.radiance).all())
-    assert bool((res.radiance == 0).all()) and res.stats["splats"] >= 0
+    assert bool((res.radiance == 0).all())
 
 
 class _Export(torch.nn.Module):

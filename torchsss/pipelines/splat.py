@@ -53,8 +53,7 @@ from torchsss.geometry.shadow import bounding_sphere
 from torchsss.modules.lensch import LenschTranslucency
 from torchsss.modules.material import DipoleMaterial
 from torchsss.modules.splat import SplatTranslucency
-from torchsss.ops.splat import splat_radiosity
-from torchsss.physics.budget import r_max, splat_spacing
+from torchsss.physics.budget import splat_spacing
 from torchsss.physics.fresnel import fresnel_transmittance
 from torchsss.pipelines.reference import RenderResult, check_objects
 from torchsss.pipelines.specular import shadow_mapped_specular
@@ -209,8 +208,8 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
     Per light, one light view of the merged mesh at ``grid`` (per distinct eta among the objects, for the Fresnel
     transmittance); every splat carries the object id of the face it sees, which is also its row of the material
     table; the camera G-buffer's face ids give the pixels' object ids; one
-    :func:`~torchsss.ops.splat.splat_radiosity` call with the material table (``r_max`` per material at ``eps``)
-    and, with ``clip_objects``, the object-id clipping. :math:`L = F_t(\\eta_k)/\\pi\\,B` per object.
+    :class:`~torchsss.modules.splat.SplatTranslucency` call with the material table (``r_max`` per material at
+    ``eps``) and, with ``clip_objects``, the object-id clipping. :math:`L = F_t(\\eta_k)/\\pi\\,B` per object.
 
     Args:
         objects: :math:`K \\ge 1` ``(mesh, material)`` pairs, meshes in mm in the scene's frame.
@@ -257,11 +256,8 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
     merged, face_object = merge_meshes(meshes)
     device = merged.vertices.device
     n = splat_grid(merged, materials, eps, max_grid, oversample) if grid is None else int(grid)
-    tables = [mat.tensors(dtype=dtype, device=device) for mat in materials]
-    sa = torch.stack([t[0] for t in tables])
-    ss = torch.stack([t[1] for t in tables])
-    eta = torch.stack([t[2] for t in tables])
-    rm = r_max(sa, ss, eta.unsqueeze(-1), eps).amax(-1).to(dtype)
+    module = SplatTranslucency([DipoleMaterial(*mat.tensors(dtype=dtype, device=device)) for mat in materials],
+                               eps=eps, method=method)
     gbuf = camera_gbuffer(merged, camera)
     dst_object = object_ids(gbuf.face_id, face_object)
     masks = object_masks(dst_object, len(objects))
@@ -285,8 +281,7 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
     src_obj = torch.cat(obj).unsqueeze(0)
     ids = {"src_object": src_obj, "dst_object": dst_object} if clip_objects else {}
     with torch.no_grad():
-        b = splat_radiosity(src_pos, src_flux, gbuf.position, gbuf.mask, view_proj, sa, ss, eta, rm,
-                            src_material=src_obj, method=method, **ids)
+        b = module(src_pos, src_flux, gbuf.position, gbuf.mask, view_proj, src_material=src_obj, **ids)
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     radiance = torch.zeros_like(b)
     for k, mat in enumerate(materials):
@@ -294,6 +289,6 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
         if specular:
             spec = shadow_mapped_specular(merged, gbuf, lights, mat.eta, roughness=roughness)
             radiance = radiance + spec * masks[:, k:k + 1]
-    stats = {"grid": n, "splats": int(src_pos.shape[1]), "r_max_mm": [float(v) for v in rm], "eps": eps,
+    stats = {"grid": n, "splats": int(src_pos.shape[1]), "r_max_mm": [float(v) for v in module.r_max], "eps": eps,
              "objects": len(objects), "clip_objects": bool(clip_objects), "t_frame_s": time.perf_counter() - t0}
     return RenderResult(radiance, b, gbuf.mask, stats)
