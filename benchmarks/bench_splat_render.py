@@ -71,7 +71,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from torchsss.bench import environment, format_value, markdown_table, write_results
+from torchsss.bench import environment, environment_line, format_value, markdown_table, write_results
 from torchsss.geometry.gbuffer import camera_gbuffer, light_view
 from torchsss.geometry.loading import load_mesh
 from torchsss.modules.material import DipoleMaterial
@@ -485,8 +485,7 @@ def write_markdown(name: str, records: list[dict], out_dir: Path, env: dict | No
             if rows:
                 lines += [_accuracy_text(rows, f"{ref['scene']} ({ref['material']}, {ref['width']} x "
                                                f"{ref['height']})"), ""]
-    env_text = ", ".join(f"{k}={format_value(v)}" for k, v in env.items() if v is not None)
-    lines += [f"Environment: {env_text}.", ""]
+    lines += [environment_line(env), ""]
     path = out_dir / f"{name}.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path

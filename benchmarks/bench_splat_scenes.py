@@ -53,7 +53,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat_render import error_maps, rel_rmse
 
-from torchsss.bench import environment, format_value, markdown_table, write_results
+from torchsss.bench import environment, environment_line, format_value, markdown_table, write_results
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer
@@ -358,8 +358,7 @@ def write_markdown(name: str, records: list[dict], out_dir: Path, env: dict | No
                   "`layers` = non-empty peeled layers of the x/y/z views.", "",
                   markdown_table(envr, COLUMNS["environment"]), "", "**What this shows.**", "",
                   _environment_text(envr, {r["scene"]: r for r in refs}), ""]
-    env_text = ", ".join(f"{k}={format_value(v)}" for k, v in env.items() if v is not None)
-    lines += [f"Environment: {env_text}.", ""]
+    lines += [environment_line(env), ""]
     path = out_dir / f"{name}.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path

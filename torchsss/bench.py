@@ -325,6 +325,16 @@ def format_value(value: Any) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
+def environment_line(env: Mapping[str, Any]) -> str:
+    """The ``Environment: k=v, ...`` line that closes every results Markdown (None values left out).
+
+    Examples:
+        >>> environment_line({"torch": "2.13.0", "threads": 2, "gpu": None})
+        'Environment: torch=2.13.0, threads=2.'
+    """
+    return "Environment: " + ", ".join(f"{k}={format_value(v)}" for k, v in env.items() if v is not None) + "."
+
+
 def _columns(records: Sequence[Mapping[str, Any]]) -> list[str]:
     seen: dict[str, None] = {}
     for rec in records:
@@ -435,8 +445,7 @@ def write_results(
         if group is not None:
             cols = [c for c in cols if c != group_key]
         parts += [markdown_table(rows, cols), ""]
-    env_text = ", ".join(f"{k}={format_value(v)}" for k, v in env.items() if v is not None)
-    parts += [f"Environment: {env_text}.", ""]
+    parts += [environment_line(env), ""]
     md_path.write_text("\n".join(parts), encoding="utf-8")
     return json_path, md_path
 
