@@ -24,18 +24,23 @@ from torchsss.physics.dipole import (
     total_diffuse_reflectance,
 )
 from torchsss.physics.fresnel import (
+    FRESNEL_MODES,
+    check_fresnel,
     diffuse_fresnel_reflectance,
     dipole_boundary_a,
+    exit_radiance,
     fresnel_reflectance,
     fresnel_transmittance,
     schlick_reflectance,
     schlick_transmittance,
+    transmittance,
 )
 from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table, profile_table_error
 from torchsss.physics.materials import MaterialPreset, preset, preset_names
 from torchsss.physics.sh import SH_COEFFS, fresnel_cosine_zonal, project_sh, sh_basis, sh_irradiance, sphere_quadrature
 
 __all__ = [
+    "FRESNEL_MODES",
     "SH_COEFFS",
     "DipoleTerms",
     "MaterialPreset",
@@ -45,6 +50,7 @@ __all__ = [
     "burley_rd",
     "chang_rp",
     "chang_weights",
+    "check_fresnel",
     "diffuse_fresnel_reflectance",
     "dipole_boundary_a",
     "dipole_cumulative",
@@ -52,6 +58,7 @@ __all__ = [
     "dipole_rd_shah",
     "dipole_spectrum",
     "dipole_terms",
+    "exit_radiance",
     "fresnel_cosine_zonal",
     "fresnel_reflectance",
     "fresnel_transmittance",
@@ -72,4 +79,5 @@ __all__ = [
     "splat_overlap",
     "splat_spacing",
     "total_diffuse_reflectance",
+    "transmittance",
 ]

@@ -8,19 +8,29 @@ boundary (the light direction for :math:`F_t(\\eta, \\omega_i)`, the view direct
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 from torchsss._checks import as_float_tensor, check_broadcastable, check_positive, compute_dtype
 
 __all__ = [
+    "FRESNEL_MODES",
+    "check_fresnel",
     "diffuse_fresnel_reflectance",
     "dipole_boundary_a",
+    "exit_radiance",
     "fresnel_reflectance",
     "fresnel_transmittance",
     "schlick_reflectance",
     "schlick_transmittance",
+    "transmittance",
 ]
+
+#: The Fresnel transmittance models every renderer accepts: the exact unpolarised dielectric, Schlick's
+#: approximation, or none (:math:`F_t \\equiv 1`).
+FRESNEL_MODES = ("exact", "schlick", "none")
 
 
 def _prepare(cos_theta: Tensor | float, eta: Tensor | float) -> tuple[Tensor, Tensor, torch.dtype]:
@@ -112,6 +122,72 @@ def schlick_reflectance(cos_theta: Tensor | float, eta: Tensor | float) -> Tenso
 def schlick_transmittance(cos_theta: Tensor | float, eta: Tensor | float) -> Tensor:
     """:math:`1 -` :func:`schlick_reflectance`."""
     return 1.0 - schlick_reflectance(cos_theta, eta)
+
+
+def check_fresnel(fresnel: object, modes: tuple[str, ...] = FRESNEL_MODES) -> str:
+    """Validate a Fresnel model name (one of ``modes``); returns it.
+
+    Raises:
+        ValueError: not one of ``modes`` (the message lists them).
+
+    Examples:
+        >>> check_fresnel("schlick")
+        'schlick'
+    """
+    if not isinstance(fresnel, str) or fresnel not in modes:
+        raise ValueError(f"fresnel: expected one of {', '.join(repr(m) for m in modes)}, got {fresnel!r}")
+    return fresnel
+
+
+def transmittance(cos_theta: Tensor | float, eta: Tensor | float, fresnel: str = "exact") -> Tensor:
+    """Fresnel transmittance by the chosen model: the one place where the exact/Schlick choice is made.
+
+    Args:
+        cos_theta: cosines on the outside of the boundary (broadcast with ``eta``).
+        eta: relative index of refraction.
+        fresnel: ``"exact"`` (:func:`fresnel_transmittance`), ``"schlick"`` (:func:`schlick_transmittance`) or
+            ``"none"`` (1 everywhere, in the broadcast shape).
+
+    Examples:
+        >>> [round(transmittance(torch.tensor(1.0), 1.3, m).item(), 4) for m in FRESNEL_MODES]
+        [0.983, 0.983, 1.0]
+    """
+    check_fresnel(fresnel)
+    if fresnel == "exact":
+        return fresnel_transmittance(cos_theta, eta)
+    if fresnel == "schlick":
+        return schlick_transmittance(cos_theta, eta)
+    cos_t = as_float_tensor(cos_theta, "cos_theta")
+    eta_t = as_float_tensor(eta, "eta", like=cos_t)
+    return torch.ones(torch.broadcast_shapes(cos_t.shape, eta_t.shape), dtype=compute_dtype(cos_t, eta_t)[0],
+                      device=cos_t.device)
+
+
+def exit_radiance(radiosity: Tensor, cos_out: Tensor, eta: Tensor | float, fresnel: str = "exact") -> Tensor:
+    """Outgoing radiance :math:`L = F_t(\\eta, \\cos\\theta_o)/\\pi \\; B` of every method (DESIGN.md §1).
+
+    The one exit-radiance function: every renderer turns its radiosity into radiance here, with the ``eta`` of its
+    material module, so an edit of that eta (or a gradient step on it) reaches the exit Fresnel term.
+
+    Args:
+        radiosity: :math:`(B, C, H, W)` radiosity :math:`B` (or any shape that broadcasts with ``cos_out``).
+        cos_out: :math:`(B, 1, H, W)` cosine between the normal and the direction to the viewer (clamped to [0, 1]).
+        eta: a number, :math:`()`, :math:`(1,)` or :math:`(C,)` (per channel) relative index of refraction.
+        fresnel: ``"exact"``, ``"schlick"`` or ``"none"`` (see :func:`transmittance`).
+
+    Returns:
+        :math:`(B, C, H, W)` radiance, differentiable in ``radiosity`` and ``eta``.
+
+    Examples:
+        >>> b = torch.ones(1, 3, 2, 2); cos = torch.ones(1, 1, 2, 2)
+        >>> round(exit_radiance(b, cos, 1.3)[0, 0, 0, 0].item() * math.pi, 4)
+        0.983
+        >>> exit_radiance(b, cos, torch.tensor([1.3, 1.4, 1.5])).shape
+        torch.Size([1, 3, 2, 2])
+    """
+    if isinstance(eta, Tensor) and eta.dim() == 1 and eta.numel() > 1 and radiosity.dim() == 4:
+        eta = eta.view(1, -1, 1, 1)
+    return transmittance(cos_out, eta, fresnel) / math.pi * radiosity
 
 
 def diffuse_fresnel_reflectance(eta: Tensor | float) -> Tensor:
