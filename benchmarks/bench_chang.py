@@ -61,9 +61,9 @@ from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.procedural import sphere
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
-from torchsss.modules.lensch import LenschTranslucency
 from torchsss.modules.material import DipoleMaterial
 from torchsss.ops.reference import reference_radiosity
+from torchsss.physics.fresnel import exit_radiance
 from torchsss.pipelines.chang import ChangScene, render_icdf, sample_uniforms
 from torchsss.pipelines.lensch import _camera_uv, irradiance_atlas
 from torchsss.pipelines.reference import render_reference
@@ -125,7 +125,7 @@ class Prepared:
         b = torch.zeros(h, w, radiosity.shape[-1], dtype=radiosity.dtype)
         b[self.mask] = radiosity[0]
         b = b.permute(2, 0, 1).unsqueeze(0)
-        return LenschTranslucency.radiance(b, self.cos_o, self.material.eta) * self.mask
+        return exit_radiance(b, self.cos_o, self.material.eta) * self.mask
 
     def error(self, radiance: torch.Tensor, target: torch.Tensor | None = None) -> float:
         """Relative RMSE of ``radiance`` against ``target`` (default the reference) over the covered pixels."""

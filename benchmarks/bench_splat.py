@@ -26,6 +26,7 @@ Usage::
 
 from __future__ import annotations
 
+import functools
 import sys
 import tempfile
 import time
@@ -139,6 +140,11 @@ def reach_fraction(pos: torch.Tensor, pixels: torch.Tensor, rmax: float) -> floa
     return inside / (pixels.shape[1] * pos.shape[1])
 
 
+def _dipole(sa, ss, eta):
+    """The op's profile callable from coefficient tensors (materials as graph inputs in the export wrapper)."""
+    return functools.partial(dipole_rd, sigma_a=sa, sigma_s_prime=ss, eta=eta)
+
+
 def rel_err(image: torch.Tensor, scene: Scene, ref: torch.Tensor) -> float:
     got = image.flatten(2).transpose(1, 2)[:, scene.mask.flatten()]
     return float((got - ref).abs().max() / ref.abs().max())
@@ -150,7 +156,7 @@ def bench_splat(scene: Scene, cfg: dict, log=print) -> list[dict]:
         sa, ss, eta, rmax = material(name)
         for n in cfg["ns"]:
             pos, flux = scene.sources(n)
-            args = (pos, flux, scene.dst, scene.mask, scene.view_proj, sa, ss, eta, rmax)
+            args = (pos, flux, scene.dst, scene.mask, scene.view_proj, _dipole(sa, ss, eta), rmax)
             with torch.inference_mode():
                 ref = reference_image(scene, pos, flux, sa, ss, eta, rmax)
                 errs = {m: rel_err(splat_radiosity(*args, method=m), scene, ref) for m in ("window", "tile")}
@@ -209,9 +215,7 @@ class _SplatWindow(torch.nn.Module):
             dst_pos,
             dst_mask,
             view_proj,
-            sigma_a,
-            sigma_s_prime,
-            eta,
+            _dipole(sigma_a, sigma_s_prime, eta),
             r_max,
             method="window",
             window=self.window,

@@ -48,9 +48,9 @@ from torchsss.geometry.gbuffer import camera_gbuffer, light_view
 from torchsss.geometry.lights import PointLight
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.mesh import Mesh
-from torchsss.modules.lensch import LenschTranslucency
 from torchsss.modules.material import DipoleMaterial
 from torchsss.modules.splat import SplatTranslucency
+from torchsss.physics.fresnel import exit_radiance
 from torchsss.pipelines.splat import splat_grid
 from torchsss.scene import Material
 
@@ -98,7 +98,7 @@ class Renderer:
         with torch.no_grad():
             b = self.module(pos, flux, g.position, g.mask, CAMERA.view_proj())
         cos_o = (g.normal * g.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
-        return LenschTranslucency.radiance(b, cos_o, self.eta) * g.mask
+        return exit_radiance(b, cos_o, self.eta) * g.mask
 
 
 def plain_sources(mesh: Mesh, n: int, eta: float) -> tuple[torch.Tensor, torch.Tensor]:

@@ -31,9 +31,9 @@ from torchsss.geometry.lights import PointLight
 from torchsss.geometry.mesh import mesh_from_arrays
 from torchsss.geometry.procedural import sphere
 from torchsss.io import tonemap, write_exr, write_png
-from torchsss.pipelines.render import render_scene
 from torchsss.pipelines.splat import render_splat
 from torchsss.pipelines.splat_sequence import render_splat_sequence
+from torchsss.registry import render_scene
 from torchsss.scene import Material, load_scene
 
 ROOT = Path(__file__).resolve().parent

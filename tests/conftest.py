@@ -30,3 +30,43 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"shared data not found at {SHARED}")
     return SHARED
+
+
+# -- the accuracy scene every method is compared on (tests/test_<method>_vs_reference.py) -----------------------------
+class VsReference:
+    """A 16 mm skin1 sphere lit from the side and a little behind, 24 x 24 pixels: small enough for every method.
+
+    ``reference(profile)`` is the all-pairs reference image with that profile model (cached per session), at a
+    sample spacing of 0.2 mm (below every profile's default).
+    """
+
+    def __init__(self) -> None:
+        from torchsss.geometry import Camera, PointLight, sphere
+        from torchsss.physics import Material
+
+        self.mesh = sphere(8.0, 3)  # radius 8 mm, 642 vertices
+        self.camera = Camera(eye=(0.0, 0.0, 45.0), target=(0.0, 0.0, 0.0), width=24, height=24, fov_deg=26.0)
+        self.lights = [PointLight((40.0, 5.0, -20.0), (1500.0, 1500.0, 1500.0))]
+        self.material = Material.from_json("skin1")
+        self._refs: dict = {}
+
+    def reference(self, profile: str):
+        from torchsss.pipelines import build
+
+        if profile not in self._refs:
+            r = build("reference", self.mesh, self.material.with_profile(profile), spacing_mm=0.2)
+            self._refs[profile] = r.render(self.lights, self.camera)
+        return self._refs[profile]
+
+    def error(self, result, profile: str) -> float:
+        """Relative RMSE of ``result``'s radiance against the reference over the pixels both cover."""
+        ref = self.reference(profile)
+        m = (ref.mask & result.mask).expand_as(ref.radiance)
+        d = (result.radiance - ref.radiance)[m]
+        return float(d.square().mean().sqrt() / ref.radiance[m].square().mean().sqrt())
+
+
+@pytest.fixture(scope="session")
+def vs_reference() -> VsReference:
+    """The shared accuracy scene (see :class:`VsReference`)."""
+    return VsReference()

@@ -12,6 +12,7 @@ import torch
 from torchsss.geometry import PointLight, build_atlas, plane, sphere, surface_irradiance
 from torchsss.modules import DipoleMaterial
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
+from torchsss.ops.icdf import icdf_sample, pyramid_levels
 from torchsss.ops.reference import reference_radiosity
 from torchsss.physics import chang_weights, dipole_rd, profile_tail_fraction, total_diffuse_reflectance
 from torchsss.pipelines.chang import ChangScene, build_icdf, render_hybrid, render_icdf, sample_uniforms
@@ -236,6 +237,43 @@ def test_large_n_is_chunked_and_matches(lit_sphere):
     torch.testing.assert_close(small, big, rtol=1e-10, atol=0.0)
     lit = ref > 0.05 * ref.amax(1, keepdim=True)
     assert float(((big - ref) / ref)[lit].abs().max()) < 0.1
+
+
+def test_levels_fixed_at_construction_from_the_atlas(lit_sphere):
+    atlas, mat, e, _, _ = lit_sphere
+    mod = ImportanceSampledTranslucency.from_atlas(atlas, mat)
+    assert mod.levels == pyramid_levels(*atlas.shape) == 6
+    assert HybridTranslucency.from_atlas(atlas, mat).global_term.levels == 6
+    assert ImportanceSampledTranslucency.from_atlas(atlas, mat, levels=8).levels == 8
+    u = torch.rand(1, 64, 2, generator=torch.Generator().manual_seed(5), dtype=F64)
+    with torch.no_grad():  # the same as the op's own default depth, so eager outputs did not change
+        xy, p = icdf_sample(mod.density(e), u)
+        got_xy, got_p = mod.sampler(mod.density(e), u)
+    assert torch.equal(got_xy, xy) and torch.equal(got_p, p)
+
+
+@pytest.mark.filterwarnings("ignore:`isinstance\\(treespec, LeafSpec\\)` is deprecated:FutureWarning")
+@pytest.mark.filterwarnings("ignore:# The axis name:UserWarning")
+def test_onnx_export_with_default_levels(tmp_path):
+    """Built with the defaults (no ``levels=``), the hybrid (and the importance sampler in it) exports."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    from torchsss.export import compare_with_eager, export_onnx
+
+    atlas = build_atlas(sphere(6.0, 1), 32, kernel_size=3)
+    module = HybridTranslucency.from_atlas(atlas, DipoleMaterial.from_preset("skin1"), grid=64)
+    g = torch.Generator().manual_seed(6)
+    pts = atlas.position.flatten(2).transpose(1, 2)[:, atlas.chart_mask.flatten()][:, ::20]
+
+    def args(b):
+        return (torch.rand(b, 3, 32, 32, generator=g) * atlas.valid_mask, torch.rand(b, 64, 2, generator=g),
+                pts.expand(b, -1, -1) + 0.05 * b, torch.rand(b, pts.shape[1], 2, generator=g))
+
+    batch = torch.export.Dim("B", max=64)
+    path = export_onnx(module, args(2), tmp_path / "hybrid.onnx", dynamic_shapes=({0: batch},) * 4)
+    res = compare_with_eager(module, path, args(3))
+    assert res["shapes"] == [(3, pts.shape[1], 3)] and res["compared"] > 0
+    assert res["max_rel_diff"] <= 1e-5 and res["zero_pattern_match"], res
 
 
 def test_batched_inputs_match_single(lit_sphere):

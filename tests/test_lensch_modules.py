@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import pytest
@@ -14,10 +15,15 @@ from torchsss.geometry.lensch import build_throughput, local_kernel_geometry, ve
 from torchsss.modules import DipoleMaterial, TabulatedMaterial
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
 from torchsss.ops.sv_conv import sv_conv2d_reference
-from torchsss.physics import dipole_cumulative, total_diffuse_reflectance
+from torchsss.physics import dipole_cumulative, dipole_rd, total_diffuse_reflectance
 from torchsss.pipelines.lensch import render_lensch
 from torchsss.pipelines.reference import render_reference
 from torchsss.scene import Material
+
+
+def _dip(sa, ss, eta=1.3):
+    """A dipole profile callable from coefficients (the throughput build's profile)."""
+    return functools.partial(dipole_rd, sigma_a=sa, sigma_s_prime=ss, eta=eta)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +79,7 @@ def test_global_response_against_dense_sums(small):
     mesh, atlas = small
     mat = _material()
     w = vertex_weights(mesh, atlas)
-    tp = build_throughput(mesh, *Material.from_json("skin1").tensors(torch.float64), threshold=0.0)
+    tp = build_throughput(mesh, _dip(*Material.from_json("skin1").tensors(torch.float64)), threshold=0.0)
     glob = GlobalResponse(w, tp, mat, atlas.valid_mask, method="scatter")
     e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
     eg = glob.vertex_irradiance(e)
@@ -102,7 +108,8 @@ def test_material_gradients_flow(small):
     mat = _material()
     sa, ss, eta = Material.from_json("skin1").tensors(torch.float64)
     module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 5), mat),
-                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                GlobalResponse(vertex_weights(mesh, atlas),
+                                    build_throughput(mesh, _dip(sa, ss, eta)), mat,
                                                atlas.valid_mask, method="scatter"))
     e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
     module(e).sum().backward()
@@ -116,7 +123,8 @@ def test_gradcheck_wrt_irradiance():
     sa, ss, eta = Material.from_json("marble").tensors(torch.float64)
     mat = DipoleMaterial(sa, ss, eta)
     module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 3), mat),
-                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                GlobalResponse(vertex_weights(mesh, atlas),
+                                    build_throughput(mesh, _dip(sa, ss, eta)), mat,
                                                atlas.valid_mask, method="scatter"))
     e = (torch.rand(1, 3, 24, 24, dtype=torch.float64) * atlas.valid_mask).requires_grad_()
     assert torch.autograd.gradcheck(module, (e,), eps=1e-6, atol=1e-8)
@@ -171,7 +179,8 @@ def test_per_frame_module_exports_to_onnx(small, tmp_path):
     atlas32 = build_atlas(mesh32, 64, kernel_size=5)
     mat = DipoleMaterial(sa, ss, eta)
     module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas32, 5), mat),
-                                GlobalResponse(vertex_weights(mesh32, atlas32), build_throughput(mesh32, sa, ss, eta),
+                                GlobalResponse(vertex_weights(mesh32, atlas32),
+                                    build_throughput(mesh32, _dip(sa, ss, eta)),
                                                mat, atlas32.valid_mask)).eval()
     e = torch.rand(1, 3, 64, 64) * atlas32.valid_mask
     path = export_onnx(module, (e,), tmp_path / "lensch.onnx")
@@ -194,7 +203,7 @@ def test_extremes_tiny_and_huge_r_max():
         ss = torch.full((3,), ss_v, dtype=torch.float64)
         mat = DipoleMaterial(sa, ss, torch.tensor(1.3, dtype=torch.float64))
         local = LocalResponse(local_kernel_geometry(atlas, 5), mat)
-        glob = GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, 1.3), mat,
+        glob = GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, _dip(sa, ss, 1.3)), mat,
                               atlas.valid_mask)
         e = torch.ones(1, 3, 128, 128, dtype=torch.float64) * atlas.valid_mask
         with torch.no_grad():
@@ -214,7 +223,8 @@ def test_cached_kernels_follow_material_edits(small):
     sa, ss, eta = Material.from_json("skin1").tensors(torch.float64)
     mat = DipoleMaterial(sa, ss, eta)
     module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, 5), mat),
-                                GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat,
+                                GlobalResponse(vertex_weights(mesh, atlas),
+                                    build_throughput(mesh, _dip(sa, ss, eta)), mat,
                                                atlas.valid_mask))
     e = torch.rand(1, 3, 64, 64, dtype=torch.float64) * atlas.valid_mask
     with torch.no_grad():
@@ -244,12 +254,13 @@ def test_modules_reject_bad_input(small):
     with pytest.raises(ValueError, match="distance_scale"):
         LocalResponse(geom, _material(), distance_scale=torch.ones(1, 1, 32, 32, dtype=torch.float64))
     with pytest.raises(ValueError, match="valid"):
-        GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, *Material.from_json("skin1").tensors()),
+        GlobalResponse(vertex_weights(mesh, atlas),
+            build_throughput(mesh, _dip(*Material.from_json("skin1").tensors())),
                        _material(), torch.ones(1, 1, 8, 8, dtype=torch.bool))
     with pytest.raises(ValueError, match="albedo"):
         LenschTranslucency(LocalResponse(geom, _material()),
                            GlobalResponse(vertex_weights(mesh, atlas),
-                                          build_throughput(mesh, *Material.from_json("skin1").tensors()),
+                                          build_throughput(mesh, _dip(*Material.from_json("skin1").tensors())),
                                           _material(), atlas.valid_mask),
                            albedo=torch.ones(1, 3, 64, 64, dtype=torch.float64))
 
@@ -260,7 +271,7 @@ def test_tabulated_material_matches_the_analytic_profile(small):
     geom = local_kernel_geometry(atlas, 5)
     weights = vertex_weights(mesh, atlas)
     mat = _material("marble")
-    tp = build_throughput(mesh, mat.sigma_a.detach(), mat.sigma_s_prime.detach(), mat.eta.detach())
+    tp = build_throughput(mesh, mat)
     e = torch.rand(1, 3, 64, 64, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * atlas.valid_mask
 
     def module(m):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -21,7 +22,18 @@ from torchsss.geometry.lensch import (
     throughput_values,
     vertex_weights,
 )
-from torchsss.physics.dipole import dipole_rd
+from torchsss.physics.dipole import dipole_cumulative, dipole_rd
+
+
+def _dip(sa, ss, eta=1.3):
+    """A dipole profile callable (distances (..., 1) mm -> R_d (..., C)) from coefficients."""
+    return functools.partial(dipole_rd, sigma_a=sa, sigma_s_prime=ss, eta=eta)
+
+
+def _self_peak(mesh, material):
+    """The relative threshold's reference: the largest vertex's self throughput, the disk integral of R_d."""
+    radius = torch.sqrt(mesh.vertex_areas.to(torch.float64).max() / math.pi)
+    return float(dipole_cumulative(radius, *material).max())
 
 MARBLE = (torch.tensor([0.0021, 0.0041, 0.0071], dtype=torch.float64),
           torch.tensor([2.19, 2.62, 3.00], dtype=torch.float64), 1.3)
@@ -169,9 +181,9 @@ def test_throughput_matches_dense(material, subdivisions):
     fmax = f.amax(-1)
     n = mesh.num_vertices
     for threshold, relative in ((1e-2, True), (1e-4, True), (1e-4 * float(fmax.max()), False)):
-        tp = build_throughput(mesh, *material, threshold=threshold, relative=relative)
+        tp = build_throughput(mesh, _dip(*material), threshold=threshold, relative=relative)
         assert isinstance(tp, Throughput) and tp.num_vertices == n and tp.relative is relative
-        absolute = threshold * float(fmax.max()) if relative else threshold
+        absolute = threshold * _self_peak(mesh, material) if relative else threshold
         keep = fmax >= absolute
         assert 0 < int(keep.sum()) < n * n
         rows, cols = keep.nonzero(as_tuple=True)  # row-major, like the blockwise build
@@ -182,19 +194,19 @@ def test_throughput_matches_dense(material, subdivisions):
         torch.testing.assert_close(values, f[rows, cols], rtol=1e-12, atol=0)
         assert tp.cutoff_mm == pytest.approx(float(d[keep].max()), rel=1e-12)
         # zero_diagonal drops exactly the diagonal
-        tp0 = build_throughput(mesh, *material, threshold=threshold, relative=relative, zero_diagonal=True)
+        tp0 = build_throughput(mesh, _dip(*material), threshold=threshold, relative=relative, zero_diagonal=True)
         assert _pairs(tp0) == _pairs(tp) - {(i, i) for i in range(n)}
         assert all(i != j for i, j in _pairs(tp0)) and len(_pairs(tp)) - len(_pairs(tp0)) == n
         # a tiny block size gives the identical result
-        tpb = build_throughput(mesh, *material, threshold=threshold, relative=relative, block_rows=7)
+        tpb = build_throughput(mesh, _dip(*material), threshold=threshold, relative=relative, block_rows=7)
         for a, b in zip(tp[:4], tpb[:4]):
             assert torch.equal(a, b)
         assert tpb.cutoff_mm == tp.cutoff_mm
 
 
 def test_throughput_memory_blocks_and_progress(small_sphere):
-    tp = build_throughput(small_sphere, *MARBLE, threshold=1e-3)
-    tp_small = build_throughput(small_sphere, *MARBLE, threshold=1e-3, max_memory_mb=0.01, progress=True)
+    tp = build_throughput(small_sphere, _dip(*MARBLE), threshold=1e-3)
+    tp_small = build_throughput(small_sphere, _dip(*MARBLE), threshold=1e-3, max_memory_mb=0.01, progress=True)
     assert all(torch.equal(a, b) for a, b in zip(tp[:4], tp_small[:4]))
     assert tp.build_seconds > 0 and tp.threshold == 1e-3
 
@@ -202,7 +214,7 @@ def test_throughput_memory_blocks_and_progress(small_sphere):
 def test_throughput_threshold_sweep_monotone(small_sphere):
     counts, cutoffs = [], []
     for threshold in (0.0, 1e-6, 1e-4, 1e-3, 1e-2, 1e-1, 1.0):
-        tp = build_throughput(small_sphere, *SKIN1, threshold=threshold)
+        tp = build_throughput(small_sphere, _dip(*SKIN1), threshold=threshold)
         counts.append(tp.rows.numel())
         cutoffs.append(tp.cutoff_mm)
     assert counts[0] == small_sphere.num_vertices ** 2
@@ -213,7 +225,7 @@ def test_throughput_threshold_sweep_monotone(small_sphere):
 
 def test_throughput_float32_mesh_and_scalar_material():
     mesh = sphere(10.0, 1)
-    tp = build_throughput(mesh, 0.01, 1.0, threshold=1e-3)
+    tp = build_throughput(mesh, _dip(0.01, 1.0), threshold=1e-3)
     assert tp.distance.dtype == torch.float32 and tp.rows.dtype == torch.int64
     values = throughput_values(tp, lambda r: dipole_rd(r, torch.tensor([0.01]), 1.0))
     assert values.shape == (tp.rows.numel(), 1) and values.dtype == torch.float32
@@ -253,14 +265,14 @@ def test_blending_reproduces_kernel_inside_window_and_global_far_away():
     mesh = sphere(10.0, 2, dtype=torch.float64)
     atlas = build_atlas(mesh, 96, kernel_size=7)
     k, threshold = 7, 1e-5
-    bw = blending_weights(mesh, atlas, *MARBLE, kernel_size=k, threshold=threshold)
+    bw = blending_weights(mesh, atlas, _dip(*MARBLE), kernel_size=k, threshold=threshold)
     assert isinstance(bw, BlendWeights)
     assert bw.weights.shape == (3, 3, 96, 96) and bw.kernel_correction.shape == (3, 96, 96, k, k)
     chart = atlas.chart_mask[0, 0]
     assert bool((bw.weights[:, :, ~chart] == 0).all())
     geo = local_kernel_geometry(atlas, k)
     vw = vertex_weights(mesh, atlas)
-    tp0 = build_throughput(mesh, *MARBLE, threshold=threshold, zero_diagonal=True)
+    tp0 = build_throughput(mesh, _dip(*MARBLE), threshold=threshold, zero_diagonal=True)
     pos = atlas.position[0].permute(1, 2, 0)
     ys, xs = chart.nonzero(as_tuple=True)
     gen = torch.Generator().manual_seed(0)
@@ -286,12 +298,12 @@ def test_blending_reproduces_kernel_inside_window_and_global_far_away():
 def test_blending_ring_fit_is_least_squares_optimal():
     mesh = sphere(10.0, 2, dtype=torch.float64)
     atlas = build_atlas(mesh, 96, kernel_size=7)
-    bw = blending_weights(mesh, atlas, *SKIN1, kernel_size=7, chunk_texels=257)  # odd chunking
-    bw_ref = blending_weights(mesh, atlas, *SKIN1, kernel_size=7)
+    bw = blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=7, chunk_texels=257)  # odd chunking
+    bw_ref = blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=7)
     torch.testing.assert_close(bw.weights, bw_ref.weights, rtol=1e-9, atol=1e-15)
     geo = local_kernel_geometry(atlas, 7)
     vw = vertex_weights(mesh, atlas)
-    tp0 = build_throughput(mesh, *SKIN1, zero_diagonal=True)
+    tp0 = build_throughput(mesh, _dip(*SKIN1), zero_diagonal=True)
     pos = atlas.position[0].permute(1, 2, 0)
     chart = atlas.chart_mask[0, 0]
     ys, xs = chart.nonzero(as_tuple=True)
@@ -322,7 +334,7 @@ def test_blending_ring_fit_is_least_squares_optimal():
 def test_blending_plane_interior_lowers_ring_error():
     mesh = plane(20.0, 20.0, 4, dtype=torch.float64)
     atlas = build_atlas(mesh, 64, kernel_size=5)
-    bw = blending_weights(mesh, atlas, *MARBLE, kernel_size=5, threshold=0.0)
+    bw = blending_weights(mesh, atlas, _dip(*MARBLE), kernel_size=5, threshold=0.0)
     assert torch.isfinite(bw.weights).all() and torch.isfinite(bw.kernel_correction).all()
     assert bool((bw.kernel_correction[:, ~atlas.valid_mask[0, 0]] == 0).all())
 
@@ -342,29 +354,31 @@ def test_bad_input(small_sphere, small_atlas):
     with pytest.raises(ValueError, match="atlas"):
         vertex_weights(sphere(10.0, 1), small_atlas)
     with pytest.raises(ValueError, match="threshold"):
-        build_throughput(small_sphere, *MARBLE, threshold=-1e-5)
+        build_throughput(small_sphere, _dip(*MARBLE), threshold=-1e-5)
     with pytest.raises(ValueError, match="threshold"):
-        build_throughput(small_sphere, *MARBLE, threshold=2.0)
+        build_throughput(small_sphere, _dip(*MARBLE), threshold=2.0)
     with pytest.raises(TypeError, match="threshold"):
-        build_throughput(small_sphere, *MARBLE, threshold="1e-5")
+        build_throughput(small_sphere, _dip(*MARBLE), threshold="1e-5")
     with pytest.raises(TypeError, match="relative"):
-        build_throughput(small_sphere, *MARBLE, relative=1)
+        build_throughput(small_sphere, _dip(*MARBLE), relative=1)
     with pytest.raises(ValueError, match="block_rows"):
-        build_throughput(small_sphere, *MARBLE, block_rows=0)
+        build_throughput(small_sphere, _dip(*MARBLE), block_rows=0)
     with pytest.raises(ValueError, match="max_memory_mb"):
-        build_throughput(small_sphere, *MARBLE, max_memory_mb=-1.0)
+        build_throughput(small_sphere, _dip(*MARBLE), max_memory_mb=-1.0)
     with pytest.raises(ValueError, match="sigma_a"):
-        build_throughput(small_sphere, -0.1, 1.0)
-    with pytest.raises(TypeError, match="sigma_s_prime"):
-        build_throughput(small_sphere, 0.1, "x")
+        build_throughput(small_sphere, _dip(-0.1, 1.0))
+    with pytest.raises(TypeError, match=r"profile: expected a callable"):
+        build_throughput(small_sphere, 0.1)
+    with pytest.raises(ValueError, match=r"profile: expected R_d of shape \(N, C\)"):
+        build_throughput(small_sphere, lambda r: r.sum())
     with pytest.raises(TypeError, match="profile"):
-        throughput_values(build_throughput(sphere(10.0, 0), 0.1, 1.0), 3.0)
+        throughput_values(build_throughput(sphere(10.0, 0), _dip(0.1, 1.0)), 3.0)
     with pytest.raises(TypeError, match="tp"):
         throughput_values((1, 2), lambda r: r)
     with pytest.raises(ValueError, match="kernel_size"):
-        blending_weights(small_sphere, small_atlas, *MARBLE, kernel_size=6)
+        blending_weights(small_sphere, small_atlas, _dip(*MARBLE), kernel_size=6)
     with pytest.raises(ValueError, match="chunk_texels"):
-        blending_weights(small_sphere, small_atlas, *MARBLE, chunk_texels=0)
+        blending_weights(small_sphere, small_atlas, _dip(*MARBLE), chunk_texels=0)
 
 
 def test_plan_kernel_size_follows_vertex_spacing_and_texel_size():
@@ -401,12 +415,12 @@ def test_throughput_kdtree_path_matches_brute_force(threshold):
     material = SKIN1
     d, f = _dense(mesh, material)
     fmax = f.amax(-1)
-    absolute = threshold * float(fmax.max())
+    absolute = threshold * _self_peak(mesh, material)
     radius = float(d[fmax >= absolute].max())
     diag = float((mesh.vertices.amax(0) - mesh.vertices.amin(0)).norm())
     assert radius < 0.5 * diag  # this case exercises the k-d tree candidates
     for zero_diagonal in (False, True):
-        tp = build_throughput(mesh, *material, threshold=threshold, zero_diagonal=zero_diagonal)
+        tp = build_throughput(mesh, _dip(*material), threshold=threshold, zero_diagonal=zero_diagonal)
         keep = fmax >= absolute
         if zero_diagonal:
             keep &= ~torch.eye(mesh.num_vertices, dtype=torch.bool)
@@ -424,11 +438,11 @@ def test_blending_band_fit_reduces_the_energy_overshoot():
     k = 5
     geo = local_kernel_geometry(atlas, k)
     vw = vertex_weights(mesh, atlas)
-    tp0 = build_throughput(mesh, *SKIN1, zero_diagonal=True)
-    ring = blending_weights(mesh, atlas, *SKIN1, kernel_size=k)
-    same = blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=k // 2 + 1)
+    tp0 = build_throughput(mesh, _dip(*SKIN1), zero_diagonal=True)
+    ring = blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=k)
+    same = blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=k, fit_radius=k // 2 + 1)
     assert torch.equal(ring.weights, same.weights) and torch.equal(ring.kernel_correction, same.kernel_correction)
-    band = blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=8)
+    band = blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=k, fit_radius=8)
     area = (atlas.area * atlas.valid_mask)[0, 0, :, :, None]
     pos = atlas.position[0].permute(1, 2, 0)
     chart = atlas.chart_mask[0, 0].nonzero()
@@ -440,9 +454,9 @@ def test_blending_band_fit_reduces_the_energy_overshoot():
         over.append(((blended * area).sum((0, 1)) / exact - 1.0).abs())
     assert bool((over[1] < over[0]).all()), over
     with pytest.raises(ValueError, match="fit_radius"):
-        blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=2)
+        blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=k, fit_radius=2)
     with pytest.raises(TypeError, match="fit_radius"):
-        blending_weights(mesh, atlas, *SKIN1, kernel_size=k, fit_radius=4.0)
+        blending_weights(mesh, atlas, _dip(*SKIN1), kernel_size=k, fit_radius=4.0)
 
 
 def test_plan_lensch_blends_only_when_the_kernel_reaches_the_vertices():

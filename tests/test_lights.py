@@ -119,3 +119,41 @@ def test_irradiance_gradcheck_float64():
     lights = [PointLight((5.0, -4.0, 30.0), (1e3, 2e3, 3e3)), SpotLight((0, 0, 40), (0, 0, -1), 1e3, cone_deg=45),
               DirectionalLight((0.2, 0.1, -1.0), 2.0)]
     assert torch.autograd.gradcheck(lambda p, n: surface_irradiance(p, n, lights, 1.3), (pts, nrm))
+
+
+@pytest.mark.parametrize("fresnel", ["exact", "schlick"])
+@pytest.mark.parametrize("shape", [(), (1,)])
+def test_eta_tensor_gradient_matches_finite_differences(fresnel, shape):
+    """A tensor eta (the material module's, each frame) reaches the output differentiably, environment included."""
+    from torchsss.geometry.environment import EnvironmentLight
+
+    torch.manual_seed(1)
+    pts = torch.randn(1, 20, 3, dtype=torch.float64) * 3
+    nrm = torch.nn.functional.normalize(torch.randn(1, 20, 3, dtype=torch.float64), dim=-1)
+    lights = [PointLight((10.0, -20.0, 30.0), (100.0, 200.0, 300.0)), DirectionalLight((0.2, 0.1, -1.0), 2.0),
+              EnvironmentLight.sky((0.5, 0.6, 0.9), (0.2, 0.2, 0.1))]
+    weights = torch.rand(1, 20, 3, dtype=torch.float64)
+
+    def f(eta):
+        return (surface_irradiance(pts, nrm, lights, eta, fresnel=fresnel) * weights).sum()
+
+    eta = torch.full(shape, 1.3, dtype=torch.float64, requires_grad=True)
+    f(eta).backward()
+    grad = eta.grad.reshape(())
+    h = 1e-6
+    fd = (f(torch.tensor(1.3 + h, dtype=torch.float64)) - f(torch.tensor(1.3 - h, dtype=torch.float64))) / (2 * h)
+    assert torch.isfinite(grad) and grad != 0
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
+    # the tensor gives the same values as the number
+    torch.testing.assert_close(surface_irradiance(pts, nrm, lights, eta.detach(), fresnel=fresnel),
+                               surface_irradiance(pts, nrm, lights, 1.3, fresnel=fresnel), rtol=0, atol=0)
+
+
+def test_per_channel_eta_and_bad_eta_shape():
+    pts, nrm = torch.zeros(1, 4, 3, dtype=torch.float64), torch.tensor([[[0.0, 0.6, 0.8]] * 4], dtype=torch.float64)
+    light = PointLight((0, 0, 10), 100.0)
+    e = surface_irradiance(pts, nrm, light, torch.tensor([1.2, 1.3, 1.5], dtype=torch.float64))
+    for c, eta in enumerate((1.2, 1.3, 1.5)):
+        torch.testing.assert_close(e[..., c], surface_irradiance(pts, nrm, light, eta)[..., c], rtol=1e-15, atol=0)
+    with pytest.raises(ValueError, match="eta"):
+        surface_irradiance(pts, nrm, light, torch.full((4,), 1.3, dtype=torch.float64))

@@ -14,8 +14,8 @@ from torchsss.cli import main
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.procedural import sphere, torus
-from torchsss.pipelines.render import OBJECT_METHODS, render_scene
 from torchsss.pipelines.splat import render_splat
+from torchsss.registry import OBJECT_METHODS, render_scene
 from torchsss.scene import Material, Scene, SceneObject, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,7 +9,7 @@ import torch
 
 from torchsss.cli import main
 from torchsss.geometry.lights import surface_irradiance
-from torchsss.pipelines.render import render_scene
+from torchsss.registry import render_scene
 from torchsss.scene import Caustics, Scene
 
 BASE = {

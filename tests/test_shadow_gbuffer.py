@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchsss.geometry.camera import Camera
-from torchsss.geometry.gbuffer import camera_gbuffer, light_view
+from torchsss.geometry.gbuffer import camera_gbuffer, layer_gbuffer, light_view
 from torchsss.geometry.lights import DirectionalLight, PointLight, SpotLight, surface_irradiance
 from torchsss.geometry.mesh import mesh_from_arrays
 from torchsss.geometry.procedural import plane, slab, sphere
@@ -158,3 +158,80 @@ def test_unlit_light_view_is_zero_not_nan():
     lv = light_view(mesh, DirectionalLight((0.0, 0.0, 1.0), 1.0), 32)  # light from below
     assert bool(torch.isfinite(lv.flux).all()) and float(lv.flux.abs().sum()) == 0.0
     assert np.isfinite(lv.area.numpy()).all()
+
+
+@pytest.mark.parametrize("shape", [(), (1,)])
+def test_light_view_eta_tensor_gradient_matches_finite_differences(shape):
+    mesh = sphere(10.0, 3).with_dtype(torch.float64)
+    light = PointLight((20.0, 30.0, 40.0), (1e3, 2e3, 3e3))
+
+    def f(eta):
+        lv = light_view(mesh, light, 32, eta)
+        return lv.flux.sum() + lv.irradiance.sum()
+
+    eta = torch.full(shape, 1.3, dtype=torch.float64, requires_grad=True)
+    f(eta).backward()
+    grad = eta.grad.reshape(())
+    h = 1e-6
+    fd = (f(torch.tensor(1.3 + h, dtype=torch.float64)) - f(torch.tensor(1.3 - h, dtype=torch.float64))) / (2 * h)
+    assert torch.isfinite(grad) and grad != 0
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
+    # per channel: each channel as with its own number
+    lv3 = light_view(mesh, light, 32, torch.tensor([1.2, 1.3, 1.5], dtype=torch.float64))
+    for c, e in enumerate((1.2, 1.3, 1.5)):
+        torch.testing.assert_close(lv3.flux[:, c], light_view(mesh, light, 32, e).flux[:, c], rtol=1e-15, atol=0)
+
+
+def test_layer_gbuffer_nearest_and_farthest_layers():
+    mesh = sphere(10.0, 4).with_dtype(torch.float64)
+    cam = Camera(eye=(0.0, 0.0, 60.0), target=(0.0, 0.0, 0.0), width=24, height=32)
+    vp = cam.view_proj(dtype=torch.float64)
+    near = layer_gbuffer(mesh, vp, cam.resolution)
+    far = layer_gbuffer(mesh, vp, cam.resolution, farthest=True)
+    assert near.position.shape == (1, 3, 32, 24) and near.mask.shape == (1, 1, 32, 24)
+    assert torch.equal(near.mask, far.mask) and bool(near.mask.any()) and not bool(near.mask.all())
+    m = near.mask.expand_as(near.position)
+    assert bool(near.position[~m].isnan().all()) and bool((near.normal[~m] == 0).all())
+    # the near surface is nearer the eye (z = 60) than the far one at every pixel; both on the sphere, normals radial
+    assert bool((near.position[:, 2][near.mask[:, 0]] > far.position[:, 2][far.mask[:, 0]]).all())
+    for lay in (near, far):
+        p = lay.position.permute(0, 2, 3, 1)[lay.mask[:, 0]]
+        n = lay.normal.permute(0, 2, 3, 1)[lay.mask[:, 0]]
+        assert float((p.norm(dim=-1) - 10.0).abs().max()) < 0.1
+        assert float((n - p / p.norm(dim=-1, keepdim=True)).norm(dim=-1).max()) < 0.05
+    assert bool((near.depth[near.mask] < far.depth[far.mask]).all()) and bool(near.depth[~near.mask].isinf().all())
+    assert bool(far.depth[~far.mask].isinf().all()) and bool((far.depth[far.mask].abs() <= 1).all())
+    # fill=0 and the camera G-buffer agree with it
+    g = camera_gbuffer(mesh, cam)
+    zero = layer_gbuffer(mesh, vp, cam.resolution, fill=0.0)
+    assert torch.equal(g.position, zero.position) and torch.equal(g.normal, near.normal)
+    assert torch.equal(g.face_id, near.face_id) and bool((zero.position[~m] == 0).all())
+    assert layer_gbuffer(mesh, vp, 16).position.shape == (1, 3, 16, 16)
+
+
+def test_light_camera_options():
+    light = PointLight((0.0, 0.0, 100.0), 1.0)
+    base = light_camera(light, (0, 0, 0), 10.0, 64)
+    assert (base.near, base.far) == (100.0 - 10.2, 100.0 + 10.2)
+    wide = light_camera(light, (0, 0, 0), 10.0, 64, margin=1.5)
+    assert wide.fov_deg == pytest.approx(2 * math.degrees(math.asin(0.15)))
+    # near and far around extra points; a nearer near plane
+    pts = torch.tensor([[0.0, 0.0, -150.0], [0.0, 0.0, 95.0]], dtype=torch.float64)
+    cam = light_camera(light, (0, 0, 0), 10.0, 64, points=pts, near_fraction=0.5)
+    assert cam.near == pytest.approx(45.0) and cam.far == pytest.approx(250.0 * 1.01 + 1e-3)
+    # the half-angle cap; with it a light just outside the sphere is accepted
+    close = PointLight((0.0, 0.0, 12.0), 1.0)
+    with pytest.raises(ValueError, match="light: expected a point light outside the object's bounding sphere"):
+        light_camera(close, (0, 0, 0), 10.0, 64, margin=1.5)
+    capped = light_camera(close, (0, 0, 0), 10.0, 64, margin=1.5, max_half_angle_deg=80.0)
+    assert capped.fov_deg == pytest.approx(160.0)
+    # directional: the box holds the points along the light, padded
+    d = light_camera(DirectionalLight((0, 0, -1), 1.0), (0, 0, 0), 10.0, 64, margin=1.5, points=pts)
+    assert d.ortho_half_height == pytest.approx(15.0)
+    assert d.near == pytest.approx(30.0 - 95.0 - 0.101) and d.far == pytest.approx(30.0 + 150.0 + 0.101)
+    for kw in ({"margin": 0.0}, {"max_half_angle_deg": 90.0}, {"near_fraction": 1.5},
+               {"points": torch.zeros(0, 3)}, {"points": torch.zeros(3)}):
+        with pytest.raises(ValueError):
+            light_camera(light, (0, 0, 0), 10.0, 64, **kw)
+    with pytest.raises(TypeError, match="margin"):
+        light_camera(light, (0, 0, 0), 10.0, 64, margin="1")

@@ -3,6 +3,7 @@ extremes, typed errors, ONNX export of the window path."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -58,6 +59,19 @@ def _sphere_points(n, centre, radius, gen, dtype=F64):
     v = torch.randn(n, 3, generator=gen, dtype=F64)
     v = v / v.norm(dim=-1, keepdim=True)
     return (v * radius + torch.tensor(centre, dtype=F64)).to(dtype)
+
+
+def _table_profiles(sa, ss, eta):
+    """The material table (M, C) / (C,) coefficients as the op's list of profile callables (one per row)."""
+    sa2, ss2 = sa.reshape(-1, sa.shape[-1]), ss.reshape(-1, ss.shape[-1])
+    m = sa2.shape[0]
+    et = torch.as_tensor(eta, dtype=sa2.dtype).reshape(-1).expand(m)
+    return [functools.partial(dipole_rd, sigma_a=sa2[k], sigma_s_prime=ss2[k], eta=et[k]) for k in range(m)]
+
+
+def _op(src_pos, flux, dst, mask, vp, sa, ss, eta, rmax, **kw):
+    """splat_radiosity with the material given as coefficient tables (dipole profiles)."""
+    return splat_radiosity(src_pos, flux, dst, mask, vp, _table_profiles(sa, ss, eta), rmax, **kw)
 
 
 def _materials(names, dtype=F64):
@@ -138,7 +152,7 @@ def test_planes_match_reference(method):
     src_pos, flux, dst, mask, vp = _plane_scene()
     sa, ss, eta = preset("skin1").tensors(F64)
     for rmax in (1.5, 4.0):
-        out = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, rmax, method=method)
+        out = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, rmax, method=method)
         want = _reference(src_pos, flux, dst, mask, sa, ss, eta, rmax)
         assert out.shape == (2, 3, 20, 24) and out.dtype == F64
         assert float(want.amax()) > 0 and int((want > 0).sum()) > 100  # the scene is not trivially empty
@@ -159,7 +173,7 @@ def test_sphere_two_materials_and_modifiers_match_reference(method):
     rmax = torch.tensor([2.5, 4.0], dtype=F64)
     md = 0.6 + torch.rand(1, s, 3, generator=gen, dtype=F64)  # per channel: truncation differs per channel
     mi = torch.rand(1, s, 1, generator=gen, dtype=F64)
-    out = splat_radiosity(
+    out = _op(
         src_pos,
         flux,
         dst,
@@ -201,19 +215,19 @@ def test_two_touching_objects_no_crosstalk(method):
     rmax = torch.tensor([6.0, 6.0], dtype=F64)
     vp = cam.view_proj(dtype=F64)
     kw = dict(src_material=obj, method=method)
-    out = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, 1.3, rmax, src_object=obj, dst_object=dst_obj, **kw)
+    out = _op(src_pos, flux, dst, mask, vp, sa, ss, 1.3, rmax, src_object=obj, dst_object=dst_obj, **kw)
     want = _reference(src_pos, flux, dst, mask, sa, ss, 1.3, rmax, material=obj, src_object=obj, dst_object=dst_obj)
     torch.testing.assert_close(out, want, rtol=1e-10, atol=1e-14)
     # each object's pixels see exactly its own sources: splatting one object alone gives the same pixels
     for k in (0, 1):
         sel = obj[0] == k
-        alone = splat_radiosity(
+        alone = _op(
             src_pos[:, sel], flux[:, sel], dst, mask, vp, sa, ss, 1.3, rmax, src_material=obj[:, sel], method=method
         )
         px = (dst_obj == k) & mask
         torch.testing.assert_close(out * px, alone * px, rtol=1e-12, atol=1e-15)
     # without the ids the neighbour's light leaks in (so the check above is not vacuous)
-    leak = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, 1.3, rmax, **kw)
+    leak = _op(src_pos, flux, dst, mask, vp, sa, ss, 1.3, rmax, **kw)
     assert float((leak - out).amax()) > 1e-3 * float(out.amax())
 
 
@@ -229,7 +243,7 @@ def test_window_covers_the_near_side_of_the_ball():
     sa, ss, eta = preset("skin1").tensors(F64)
     vp = cam.view_proj(dtype=F64)
     want = _reference(src_pos, flux, dst, mask, sa, ss, eta, 3.0)
-    out = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window")
+    out = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window")
     torch.testing.assert_close(out, want, rtol=1e-10, atol=1e-14)
     # the naive window (projected radius at the centre's depth) is too small here: it misses light
     clip = transform_points(src_pos, vp)
@@ -237,9 +251,9 @@ def test_window_covers_the_near_side_of_the_ball():
     k_naive = 2 * math.ceil(float(naive.max())) + 1
     k_auto = splat_window_size(src_pos, vp, 3.0, 24, 24)
     assert k_naive < k_auto
-    short = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=k_naive)
+    short = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=k_naive)
     assert bool((short <= want + 1e-15).all()) and float((want - short).amax()) > 1e-3 * float(want.amax())
-    big = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=k_auto)
+    big = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=k_auto)
     torch.testing.assert_close(big, want, rtol=1e-10, atol=1e-14)
 
 
@@ -247,7 +261,7 @@ def test_window_of_one_pixel_closed_form():
     # window=1: each splat lights only the pixel its centre projects into, with R_d(|x_o - x_i|) E dA
     src_pos, flux, dst, mask, vp = _plane_scene(s=25)
     sa, ss, eta = preset("marble").tensors(F64)
-    out = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 50.0, method="window", window=1)
+    out = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 50.0, method="window", window=1)
     want = torch.zeros_like(out)
     clip = transform_points(src_pos, vp)
     for bb in range(2):
@@ -295,15 +309,15 @@ def test_splat_window_size_bounds_projected_balls():
 def test_empty_sources_and_zero_flux_give_zeros(method):
     src_pos, flux, dst, mask, vp = _plane_scene(s=10)
     sa, ss, eta = preset("skin1").tensors(F64)
-    out = splat_radiosity(src_pos[:, :0], flux[:, :0], dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    out = _op(src_pos[:, :0], flux[:, :0], dst, mask, vp, sa, ss, eta, 3.0, method=method)
     assert out.shape == (2, 3, 20, 24) and torch.equal(out, torch.zeros_like(out))
-    out = splat_radiosity(src_pos, torch.zeros_like(flux), dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    out = _op(src_pos, torch.zeros_like(flux), dst, mask, vp, sa, ss, eta, 3.0, method=method)
     assert torch.equal(out, torch.zeros_like(out))
-    out = splat_radiosity(src_pos, flux, dst, torch.zeros_like(mask), vp, sa, ss, eta, 3.0, method=method)
+    out = _op(src_pos, flux, dst, torch.zeros_like(mask), vp, sa, ss, eta, 3.0, method=method)
     assert torch.equal(out, torch.zeros_like(out))
     # zero flux that requires a gradient is kept (its gradient is not zero)
     f0 = torch.zeros_like(flux).requires_grad_()
-    splat_radiosity(src_pos, f0, dst, mask, vp, sa, ss, eta, 3.0, method=method).sum().backward()
+    _op(src_pos, f0, dst, mask, vp, sa, ss, eta, 3.0, method=method).sum().backward()
     assert float(f0.grad.abs().sum()) > 0
 
 
@@ -315,10 +329,10 @@ def test_offscreen_and_behind_camera_splats_contribute_nothing(method):
     far = far.expand(2, -1, -1)  # off to the side, below, behind the camera, at the eye itself
     more_pos = torch.cat([src_pos, far], 1)
     more_flux = torch.cat([flux, torch.ones(2, 4, 3, dtype=F64)], 1)
-    base = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
-    out = splat_radiosity(more_pos, more_flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    base = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    out = _op(more_pos, more_flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
     torch.testing.assert_close(out, base, rtol=0, atol=0)
-    only_far = splat_radiosity(far, torch.ones(2, 4, 3, dtype=F64), dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    only_far = _op(far, torch.ones(2, 4, 3, dtype=F64), dst, mask, vp, sa, ss, eta, 3.0, method=method)
     assert torch.equal(only_far, torch.zeros_like(only_far))
 
 
@@ -327,7 +341,7 @@ def test_footprint_covering_the_whole_image(method):
     # r_max far larger than the scene: every splat reaches every pixel (the window is the whole image)
     src_pos, flux, dst, mask, vp = _plane_scene(s=15)
     sa, ss, eta = preset("marble").tensors(F64)
-    out = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 1000.0, method=method)
+    out = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 1000.0, method=method)
     want = _reference(src_pos, flux, dst, mask, sa, ss, eta, 1000.0)
     assert bool((want[mask.expand_as(want)] > 0).all())
     torch.testing.assert_close(out, want, rtol=1e-10, atol=1e-14)
@@ -336,7 +350,7 @@ def test_footprint_covering_the_whole_image(method):
     fl = torch.cat([flux, torch.ones(2, 1, 3, dtype=F64)], 1)
     assert splat_window_size(near, vp, 2.0, 20, 24) == 25
     torch.testing.assert_close(
-        splat_radiosity(near, fl, dst, mask, vp, sa, ss, eta, 2.0, method=method),
+        _op(near, fl, dst, mask, vp, sa, ss, eta, 2.0, method=method),
         _reference(near, fl, dst, mask, sa, ss, eta, 2.0),
         rtol=1e-10,
         atol=1e-14,
@@ -353,9 +367,9 @@ def test_nonfinite_positions_outside_the_mask_do_not_leak(method):
     assert not bool(torch.isfinite(bad).all())
     f = flux.clone().requires_grad_()
     sa_g = sa.clone().requires_grad_()
-    out = splat_radiosity(src_pos, f, bad, mask, vp, sa_g, ss, eta, 4.0, method=method)
+    out = _op(src_pos, f, bad, mask, vp, sa_g, ss, eta, 4.0, method=method)
     torch.testing.assert_close(
-        out, splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 4.0, method=method), rtol=0, atol=0
+        out, _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 4.0, method=method), rtol=0, atol=0
     )
     out.sum().backward()
     assert bool(torch.isfinite(f.grad).all()) and bool(torch.isfinite(sa_g.grad).all())
@@ -368,18 +382,18 @@ def test_tiny_images_and_chunking(method, monkeypatch):
     cam = _camera(1, 1)
     dst, mask, _ = _plane_gbuffer(cam, (0.0, 0.0, 1.0), 5.0)
     src = dst[:, :, 0, 0].reshape(1, 1, 3)
-    out = splat_radiosity(
+    out = _op(
         src, torch.ones(1, 1, 3, dtype=F64), dst, mask, cam.view_proj(dtype=F64), sa, ss, eta, 1.0, method=method
     )
     torch.testing.assert_close(out.reshape(3), dipole_rd(torch.zeros(1, dtype=F64), sa, ss, eta), rtol=1e-14, atol=0)
     # tiny chunks (one splat / tile / pair at a time) and odd tile sizes give the same image
     src_pos, flux, dst, mask, vp = _plane_scene(s=12, h=10, w=12)
-    want = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
+    want = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
     assert int((want > 0).sum()) > 20
     monkeypatch.setattr(splat_mod, "_EVAL_PAIRS", 7)
     monkeypatch.setattr(splat_mod, "_MAX_CHUNK_TAPS", 5)
     for tile_size in (1, 5, 32):
-        got = splat_radiosity(
+        got = _op(
             src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method, tile_size=tile_size, max_memory_mb=1e-3
         )
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-16)
@@ -389,8 +403,8 @@ def test_auto_picks_the_scatter_form_when_splats_outnumber_pixels():
     src_pos, flux, dst, mask, vp = _plane_scene(s=400, h=6, w=7)
     sa, ss, eta = preset("skin2").tensors(F64)
     assert int(mask.sum()) < 400
-    auto = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
-    window = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window")
+    auto = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
+    window = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window")
     torch.testing.assert_close(auto, window, rtol=0, atol=0)
     assert float(window.amax()) > 0
 
@@ -398,9 +412,9 @@ def test_auto_picks_the_scatter_form_when_splats_outnumber_pixels():
 def test_batch_elements_are_independent_and_methods_agree():
     src_pos, flux, dst, mask, vp = _plane_scene(s=40)
     sa, ss, eta = preset("skin2").tensors(F64)
-    full = {m: splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=m) for m in [*METHODS, "auto"]}
+    full = {m: _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=m) for m in [*METHODS, "auto"]}
     for bb in range(2):
-        one = splat_radiosity(
+        one = _op(
             src_pos[bb : bb + 1],
             flux[bb : bb + 1],
             dst[bb : bb + 1],
@@ -422,10 +436,10 @@ def test_batch_elements_are_independent_and_methods_agree():
 def test_device_dtype(device, dtype):
     src_pos, flux, dst, mask, vp = _plane_scene(s=30)
     sa, ss, eta = preset("skin1").tensors(F64)
-    want = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
+    want = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
     args = [t.to(device=device, dtype=dtype) for t in (src_pos, flux, dst)]
     for method in METHODS:
-        out = splat_radiosity(
+        out = _op(
             *args,
             mask.to(device),
             vp.to(device=device, dtype=dtype),
@@ -444,11 +458,11 @@ def test_device_dtype(device, dtype):
 def test_reduced_precision_computed_in_float32(low):
     src_pos, flux, dst, mask, vp = _plane_scene(s=20, dtype=torch.float32)
     sa, ss, _ = preset("skin1").tensors(torch.float32)
-    out = splat_radiosity(src_pos.to(low), flux.to(low), dst.to(low), mask, vp, sa.to(low), ss.to(low), 1.3, 3.0)
+    out = _op(src_pos.to(low), flux.to(low), dst.to(low), mask, vp, sa.to(low), ss.to(low), 1.3, 3.0)
     # (Python numbers such as eta = 1.3 take the material's dtype, as in dipole_rd)
     assert out.dtype == low
     eta_low = torch.tensor(1.3, dtype=low).float()
-    want = splat_radiosity(
+    want = _op(
         src_pos.to(low).float(),
         flux.to(low).float(),
         dst.to(low).float(),
@@ -462,7 +476,7 @@ def test_reduced_precision_computed_in_float32(low):
     assert float(want.amax()) > 0
     torch.testing.assert_close(out, want.to(low), rtol=0, atol=0)
     # mixed: promotion to the wider input
-    assert splat_radiosity(src_pos.to(low), flux, dst.to(low), mask, vp, sa, ss, 1.3, 3.0).dtype == torch.float32
+    assert _op(src_pos.to(low), flux, dst.to(low), mask, vp, sa, ss, 1.3, 3.0).dtype == torch.float32
 
 
 # -- gradients ---------------------------------------------------------------------------------------------------------
@@ -486,7 +500,7 @@ def test_gradcheck(method):
     rmax = torch.tensor([2.0, 3.0], dtype=F64)
 
     def f(flux, sa, ss, eta, mi):
-        return splat_radiosity(
+        return _op(
             src_pos, flux, dst, mask, vp, sa, ss, eta, rmax, src_material=mat, src_irradiance_scale=mi, method=method
         )
 
@@ -497,7 +511,7 @@ def test_gradcheck(method):
     md = (0.5 + torch.rand(1, 6, 1, generator=gen, dtype=F64)).requires_grad_()
 
     def g(md):
-        return splat_radiosity(
+        return _op(
             src_pos,
             flux.detach(),
             dst,
@@ -531,7 +545,7 @@ def test_bad_inputs():
 
     def call(*a, **kw):
         a = list(a) + list(args[len(a) :])
-        return splat_radiosity(*a, **kw)
+        return _op(*a, **kw)
 
     with pytest.raises(TypeError, match=r"src_pos: expected a torch.Tensor, got ndarray"):
         call(np.zeros((2, 4, 3)))
@@ -549,12 +563,14 @@ def test_bad_inputs():
         call(src_pos, flux, dst, torch.ones(2, 1, 5, 7, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"view_proj: expected shape \(4, 4\) or \(B, 4, 4\) with B=2"):
         call(src_pos, flux, dst, mask, torch.eye(3))
-    with pytest.raises(ValueError, match=r"sigma_a: expected shape \(M, C\) or \(C,\) with C=3"):
-        call(src_pos, flux, dst, mask, vp, sa[:2])
-    with pytest.raises(ValueError, match=r"sigma_s_prime: expected shape \(1, 3\) \(as sigma_a\)"):
-        call(src_pos, flux, dst, mask, vp, sa, torch.ones(2, 3))
-    with pytest.raises(ValueError, match=r"eta: expected a number or a tensor of shape \(\) or \(M,\) with M=1"):
-        call(src_pos, flux, dst, mask, vp, sa, ss, torch.ones(3))
+    with pytest.raises(ValueError, match=r"profile\[0\]: expected R_d of shape \(\.\.\., 3\) \(the channels"):
+        call(src_pos, flux, dst, mask, vp, sa[:2], ss[:2])
+    with pytest.raises(TypeError, match=r"profile: expected a callable from distances \(mm\) to R_d"):
+        splat_radiosity(src_pos, flux, dst, mask, vp, sa, 3.0)
+    with pytest.raises(TypeError, match=r"profile\[1\]: expected a callable"):
+        splat_radiosity(src_pos, flux, dst, mask, vp, [_table_profiles(sa, ss, eta)[0], "marble"], 3.0)
+    with pytest.raises(ValueError, match=r"r_max: expected a number or a tensor of shape \(\) or \(M,\) with M=1"):
+        call(src_pos, flux, dst, mask, vp, sa, ss, eta, torch.ones(3))
     with pytest.raises(ValueError, match=r"r_max: expected finite values > 0, got -1.0"):
         call(src_pos, flux, dst, mask, vp, sa, ss, eta, -1.0)
     with pytest.raises(ValueError, match=r"sigma_a: expected finite values >= 0"):
@@ -611,15 +627,15 @@ def test_bad_inputs():
 def test_tracing_needs_the_window_path_and_a_fixed_window(monkeypatch):
     src_pos, flux, dst, mask, vp = _plane_scene(s=4, h=5, w=6, dtype=torch.float32)
     sa, ss, eta = preset("skin1").tensors(torch.float32)
-    monkeypatch.setattr(splat_mod, "is_tracing", lambda: True)
+    monkeypatch.setattr(splat_mod, "is_exporting", lambda: True)
     with pytest.raises(ValueError, match=r"method: expected 'window' while tracing/exporting.*got 'tile'"):
-        splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="tile", window=5)
+        _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="tile", window=5)
     with pytest.raises(ValueError, match=r"window: expected an odd int while tracing/exporting.*got None"):
-        splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
+        _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
     # the traced (dense, one chunk) formulation gives the eager numbers
-    got = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, window=11)
+    got = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, window=11)
     monkeypatch.undo()
-    want = splat_radiosity(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=11)
+    want = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="window", window=11)
     torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-9)
 
 
@@ -630,7 +646,7 @@ class _Splat(torch.nn.Module):
     def forward(
         self, src_pos, src_flux, src_material, src_object, dst_pos, dst_mask, dst_object, view_proj, sa, ss, eta, r_max
     ):
-        return splat_radiosity(
+        return _op(
             src_pos,
             src_flux,
             dst_pos,

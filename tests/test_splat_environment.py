@@ -11,8 +11,8 @@ from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import DirectionalLight
 from torchsss.geometry.procedural import plane, sphere, torus
 from torchsss.pipelines.reference import render_reference
-from torchsss.pipelines.render import render_scene
 from torchsss.pipelines.splat import render_splat
+from torchsss.registry import render_scene
 from torchsss.scene import Material, Scene
 
 SKY = {"type": "environment", "sky": [1.0, 0.9, 0.8], "ground": [0.1, 0.1, 0.1], "up": [0, 0, 1]}

@@ -12,8 +12,8 @@ from torchsss.geometry import sphere
 from torchsss.geometry.camera import Camera
 from torchsss.modules import DipoleMaterial, SplatTranslucency
 from torchsss.pipelines.reference import render_reference
-from torchsss.pipelines.render import render_scene
 from torchsss.pipelines.splat import render_splat, splat_grid
+from torchsss.registry import render_scene
 from torchsss.scene import Material, Scene
 
 SCENE = {"mesh": "sphere", "size_mm": 20.0, "material": "skin1",

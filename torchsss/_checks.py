@@ -22,6 +22,7 @@ __all__ = [
     "check_shape",
     "check_tensor",
     "compute_dtype",
+    "is_exporting",
     "is_tracing",
 ]
 
@@ -36,6 +37,15 @@ def is_tracing() -> bool:
         or torch.compiler.is_exporting()
         or torch.onnx.is_in_onnx_export()
     )
+
+
+def is_exporting() -> bool:
+    """True while torch.jit, torch.export or the ONNX exporter traces the call (not plain ``torch.compile``).
+
+    Under ``torch.compile`` alone, data-dependent Python code still runs (dynamo breaks the graph around it), so
+    an op may keep its eager path there; an exported graph cannot.
+    """
+    return bool(torch.jit.is_tracing() or torch.compiler.is_exporting() or torch.onnx.is_in_onnx_export())
 
 
 def check_tensor(x: object, name: str) -> Tensor:

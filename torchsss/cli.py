@@ -31,7 +31,8 @@ from torchsss.physics import (
     splat_spacing,
     total_diffuse_reflectance,
 )
-from torchsss.pipelines import METHODS, render_scene
+from torchsss.physics.materials import PROFILES
+from torchsss.registry import METHODS, render_scene
 from torchsss.scene import default_scene_path, load_scene
 
 __all__ = ["main", "profiles", "render"]
@@ -127,18 +128,27 @@ def _plot(curves: dict, r: torch.Tensor, path: Path) -> bool:
 
 
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
-           resolution: tuple[int, int] | None = None) -> dict:
+           resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None) -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
-    ``out`` is the EXR path; the PNG (tone-mapped) and the JSON (stats) go beside it with the same stem.
+    ``out`` is the EXR path; the PNG (tone-mapped) and the JSON (stats) go beside it with the same stem. The
+    method is built once; ``frames`` > 1 renders that many frames with the light orbiting the object and the
+    JSON gets every frame's time (``frame_s``), their median and the fps; the image is the first frame.
+    ``profile`` renders the scene's material with another profile model (``dipole``, ``burley``, ``tabulated``).
     """
     path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
     scene = load_scene(path)
     if resolution is not None:
         scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, height=resolution[0],
                                                                       width=resolution[1]))
+    if profile is not None:
+        if scene.objects:
+            scene = dataclasses.replace(scene, objects=tuple(
+                dataclasses.replace(o, material=o.material.with_profile(profile)) for o in scene.objects))
+        else:
+            scene = dataclasses.replace(scene, material=scene.material.with_profile(profile))
     t0 = time.perf_counter()
-    result = render_scene(scene, method, dtype=dtype, **options)
+    result = render_scene(scene, method, dtype=dtype, frames=frames, **options)
     seconds = time.perf_counter() - t0
     out.parent.mkdir(parents=True, exist_ok=True)
     image = result.radiance[0].float()
@@ -147,18 +157,34 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     write_png(png, tonemap(image))
     if scene.objects:
         what = {"objects": [{"mesh": o.mesh, "size_mm": o.size_mm, "translate": list(o.translate),
-                             "material": dataclasses.asdict(o.material)} for o in scene.objects]}
+                             "material": o.material.to_json()} for o in scene.objects]}
     else:
-        what = {"mesh": scene.mesh, "size_mm": scene.size_mm, "material": dataclasses.asdict(scene.material)}
+        what = {"mesh": scene.mesh, "size_mm": scene.size_mm, "material": scene.material.to_json()}
+    st = result.stats
     summary = {"scene": str(path), "method": method, **what, "width": scene.camera.width,
                "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "seconds": seconds,
+               "setup_s": st.get("setup_s"), "frame_s": st.get("frame_s"), "frame_median_s": st.get("frame_median_s"),
+               "fps": st.get("fps"), "frames": frames, "knobs": _jsonable(st.get("knobs", {})),
                "options": {k: v for k, v in options.items() if k != "progress"},
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
                "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
                                          / max(1, int(result.mask.sum()))],
-               "stats": result.stats, "exr": str(out), "png": str(png)}
+               "stats": _jsonable(result.stats), "exr": str(out), "png": str(png)}
     out.with_suffix(".json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _jsonable(value: object) -> object:
+    """Tuples, tensors and nested containers as JSON values."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, torch.Tensor):
+        return value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -209,6 +235,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
     p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")
+    p_ren.add_argument("--frames", type=int, default=1,
+                       help="render N frames from one setup, the light orbiting the object; report the median frame "
+                            "time and fps (default 1)")
+    p_ren.add_argument("--profile", choices=list(PROFILES), default=None,
+                       help="render the scene's material with this profile model (default: the scene's, dipole)")
     p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
     args = parser.parse_args(argv)
     if args.command == "render":
@@ -217,27 +248,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = {"progress": not args.no_progress}
         if args.specular:
             options.update(specular=True, roughness=args.roughness)
+        if args.frames < 1:
+            parser.error(f"--frames: expected an int >= 1, got {args.frames}")
         if args.method == "reference":
             options.update(eps=args.eps, shadows=args.shadows)
             if args.spacing is not None:
                 options["spacing_mm"] = args.spacing
         elif args.method == "lensch":
-            options.update(resolution=args.atlas_resolution, kernel_size=args.kernel_size,
+            options.update(atlas_resolution=args.atlas_resolution, kernel_size=args.kernel_size,
                            threshold=args.threshold,
                            blend=False if args.no_blend else {"auto": None, "on": True, "off": False}[args.blend])
         elif args.method == "splat":
             options["eps"] = args.eps
         elif args.method == "caustics":
-            options.pop("progress")
+            if args.specular:
+                parser.exit(2, "torchsss render: error: specular: expected off for --method caustics (the refractor "
+                               "shows Fresnel reflection of a uniform environment instead), got on\n")
+            options = {"progress": options["progress"]}
             if args.caustic_grid is not None:
-                options["resolution"] = args.caustic_grid
+                options["grid"] = args.caustic_grid
         elif args.method in ("icdf", "hybrid"):
             options.update(atlas_resolution=args.atlas_resolution, samples=args.samples, seed=args.seed)
             if args.method == "hybrid":
                 options["c"] = args.split_c
         try:
             summary = render(args.scene, args.method, args.out, options=options,
-                             dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution)
+                             dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution,
+                             frames=args.frames, profile=args.profile)
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]
@@ -250,10 +287,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             head += f", {st['samples']} importance samples"
         if "nnz" in st:
             head += f", atlas {st['atlas_resolution']}², {st['nnz']} throughput entries"
-        if "t_precompute_s" in st:
-            head += f", precompute {st['t_precompute_s']:.1f} s"
-        if "t_frame_s" in st:
-            head += f", frame {1e3 * st['t_frame_s']:.0f} ms"
+        head += f", setup {summary['setup_s']:.2f} s, frame {1e3 * summary['frame_median_s']:.0f} ms"
+        if args.frames > 1:
+            head += f" (median of {args.frames}, {summary['fps']:.2f} fps)"
         print(f"{head}, {summary['seconds']:.1f} s in all")
     if args.command == "profiles":
         if not 0 < args.eps < 1:

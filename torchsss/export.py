@@ -414,7 +414,7 @@ def _lensch_case() -> ExportCase:
     mat = DipoleMaterial(sa, ss, eta)
     module = LenschTranslucency(
         LocalResponse(local_kernel_geometry(atlas, 5), mat),
-        GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, sa, ss, eta), mat, atlas.valid_mask,
+        GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, mat), mat, atlas.valid_mask,
                        method="scatter"),  # the exported graph's summation order, so eager and ORT compare tightly
     )
     gen = torch.Generator().manual_seed(0)

@@ -61,13 +61,12 @@ from importlib import resources
 from pathlib import Path
 
 import torch
-from torch import Tensor
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.lights import Light, light_from_dict
 from torchsss.geometry.loading import builtin_mesh_names, load_mesh
 from torchsss.geometry.mesh import Mesh
-from torchsss.physics.materials import preset, preset_names
+from torchsss.physics.materials import Material
 
 __all__ = ["Caustics", "Material", "Scene", "SceneObject", "default_scene_path", "load_scene"]
 
@@ -136,59 +135,6 @@ class Caustics:
                    mode=mode, receiver_size_mm=float(size), receiver_center=tuple(float(v) for v in center),
                    albedo=_rgb_or_number(rec.get("albedo", 0.8), "scene.caustics.receiver.albedo", positive=False),
                    grid=grid)
-
-
-@dataclass(frozen=True)
-class Material:
-    """Homogeneous dipole material: per-channel coefficients in mm^-1 and the relative index of refraction."""
-
-    sigma_a: tuple[float, float, float]
-    sigma_s_prime: tuple[float, float, float]
-    eta: float = 1.3
-    name: str = "custom"
-
-    @classmethod
-    def from_json(cls, value: object) -> Material:
-        """A preset name or an object with ``sigma_a``, ``sigma_s_prime`` (3 numbers each, mm^-1) and ``eta``.
-
-        Examples:
-            >>> Material.from_json("marble").eta
-            1.3
-            >>> Material.from_json({"sigma_a": [0.1, 0.1, 0.1], "sigma_s_prime": [1, 1, 1]}).sigma_s_prime
-            (1.0, 1.0, 1.0)
-        """
-        if isinstance(value, str):
-            p = preset(value)
-            return cls(p.sigma_a, p.sigma_s_prime, p.eta, p.name)
-        if not isinstance(value, Mapping):
-            raise TypeError(f"material: expected a preset name {preset_names()} or an object, got {value!r}")
-        unknown = set(value) - {"sigma_a", "sigma_s_prime", "eta", "name"}
-        if unknown or not {"sigma_a", "sigma_s_prime"} <= set(value):
-            raise ValueError(
-                f"material: expected keys sigma_a, sigma_s_prime and optional eta, name; got {sorted(value)}"
-            )
-
-        def rgb(key: str, positive: bool) -> tuple[float, float, float]:
-            v = value[key]
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                v = [v] * 3
-            if not isinstance(v, Sequence) or len(v) != 3:
-                raise ValueError(f"material.{key}: expected 3 numbers (mm^-1), got {v!r}")
-            out = tuple(float(x) for x in v)
-            if not all(math.isfinite(x) and (x > 0 if positive else x >= 0) for x in out):
-                raise ValueError(f"material.{key}: expected finite values {'> 0' if positive else '>= 0'}, got {v!r}")
-            return out  # type: ignore[return-value]
-
-        eta = float(value.get("eta", 1.3))
-        if not (math.isfinite(eta) and eta > 0):
-            raise ValueError(f"material.eta: expected a finite value > 0, got {value.get('eta')!r}")
-        return cls(rgb("sigma_a", False), rgb("sigma_s_prime", True), eta, str(value.get("name", "custom")))
-
-    def tensors(self, dtype: torch.dtype = torch.float64, device=None) -> tuple[Tensor, Tensor, Tensor]:
-        """``(sigma_a (3,), sigma_s_prime (3,), eta ())`` tensors in mm^-1."""
-        return (torch.tensor(self.sigma_a, dtype=dtype, device=device),
-                torch.tensor(self.sigma_s_prime, dtype=dtype, device=device),
-                torch.tensor(self.eta, dtype=dtype, device=device))
 
 
 def _mesh_name(value: object, name: str) -> str:

@@ -84,7 +84,7 @@ from torchsss.geometry.camera import Camera, transform_points
 from torchsss.geometry.gbuffer import LightView, light_view
 from torchsss.geometry.lights import DirectionalLight, Light, PointLight, SpotLight, incident_light
 from torchsss.geometry.mesh import Mesh, check_mesh
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, transmittance
 
 __all__ = ["AttachedSamples", "attach_light_view", "coherent_light_samples"]
 
@@ -248,14 +248,6 @@ def _near_any(query: Tensor, points: Tensor, radius: Tensor, qz: Tensor, pz: Ten
     return hit
 
 
-def _transmit(cos: Tensor, eta: Tensor | float, fresnel: str) -> Tensor:
-    if fresnel == "exact":
-        return fresnel_transmittance(cos, eta)
-    if fresnel == "schlick":
-        return schlick_transmittance(cos, eta)
-    return torch.ones_like(cos)
-
-
 def coherent_light_samples(
     mesh: Mesh,
     light: Light,
@@ -321,8 +313,7 @@ def coherent_light_samples(
         raise TypeError(f"light: expected PointLight, DirectionalLight or SpotLight, got {type(light).__name__}")
     if isinstance(resolution, bool) or not isinstance(resolution, numbers.Integral) or resolution < 1:
         raise ValueError(f"resolution: expected a positive int, got {resolution!r}")
-    if fresnel not in ("exact", "schlick", "none"):
-        raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
+    check_fresnel(fresnel)
     if mode not in ("partition", "carry"):
         raise ValueError(f"mode: expected 'partition' or 'carry', got {mode!r}")
     if weights not in ("nearest", "tent"):
@@ -380,7 +371,7 @@ def coherent_light_samples(
         cand = (w > 1e-9) & (cos > 0) & (cos_g > 0) & (e_perp[0].amax(-1) > 0)
         return _partition(mesh, light, lv, cur, idx, fid, bary, pos, col_f, row_f, depth, cand, radius_px, weights)
     keep = ok & front & (cos > 0) & (cos_g > 0) & (stretch <= max_stretch) & (e_perp[0].amax(-1) > 0)
-    ft = _transmit(cos.clamp(0.0, 1.0), eta, fresnel)
+    ft = transmittance(cos.clamp(0.0, 1.0), eta, fresnel)
     kept_flux = (e_perp[0] * (cos_g * ft * area).unsqueeze(-1))[keep]
     kept_pos = pos[keep]
 

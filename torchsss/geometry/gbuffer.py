@@ -28,13 +28,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchsss.geometry.camera import Camera, transform_points
-from torchsss.geometry.lights import Light, incident_light
+from torchsss.geometry.lights import Light, _channel_eta, incident_light
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.raster import interpolate, rasterize
 from torchsss.geometry.shadow import bounding_sphere, light_camera
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, transmittance
 
-__all__ = ["GBuffer", "LightView", "camera_gbuffer", "light_view"]
+__all__ = ["GBuffer", "LayerGBuffer", "LightView", "camera_gbuffer", "layer_gbuffer", "light_view"]
 
 
 class GBuffer(NamedTuple):
@@ -57,6 +57,71 @@ class GBuffer(NamedTuple):
 
 def _normalize(v: Tensor, dim: int = 1) -> Tensor:
     return F.normalize(v, dim=dim, eps=1e-12)
+
+
+class LayerGBuffer(NamedTuple):
+    """One depth layer of a mesh seen through a world-to-clip matrix (:func:`layer_gbuffer`).
+
+    Attributes:
+        position: :math:`(B, 3, H, W)` mm, ``fill`` where ``mask`` is False.
+        normal: :math:`(B, 3, H, W)` unit shading normals (interpolated vertex normals), 0 where ``mask`` is False.
+        mask: :math:`(B, 1, H, W)` bool, a face covers the pixel centre.
+        depth: :math:`(B, 1, H, W)` NDC :math:`z` of the kept surface (in [-1, 1], smaller is nearer the
+            camera, for the farthest layer too), :math:`+\\infty` where ``mask`` is False.
+        face_id: :math:`(B, 1, H, W)` int64 face of the kept surface, -1 where ``mask`` is False.
+        bary: :math:`(B, 3, H, W)` its perspective-correct barycentric weights, zeros where ``mask`` is False.
+    """
+
+    position: Tensor
+    normal: Tensor
+    mask: Tensor
+    depth: Tensor
+    face_id: Tensor
+    bary: Tensor
+
+
+def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, int], *, farthest: bool = False,
+                  fill: float = math.nan) -> LayerGBuffer:
+    """Rasterize ``mesh`` through ``view_proj`` and interpolate positions and unit normals of one depth layer.
+
+    The nearest layer is the z-buffer's; the farthest (``farthest=True``) is found by negating clip-space z, so
+    that the z-buffer keeps the farthest surface along every pixel's ray (the clip volume's z range is symmetric,
+    and the perspective-correct barycentrics depend on x, y, w only). This needs no consistent face winding.
+
+    Args:
+        mesh: the geometry (mm), :math:`V` vertices.
+        view_proj: :math:`(4, 4)` world-to-clip matrix (e.g. :meth:`Camera.view_proj`), in the mesh's dtype.
+        resolution: ``(H, W)``, or one int for a square image.
+        farthest: keep the farthest surface instead of the nearest.
+        fill: position value where nothing is seen (NaN by default; 0 for the zero-background G-buffers).
+
+    Returns:
+        :class:`LayerGBuffer` with batch 1, in the mesh's dtype and device; position and normal are differentiable
+        w.r.t. the mesh vertices (inside each face).
+
+    Examples:
+        >>> from torchsss.geometry.procedural import sphere
+        >>> cam = Camera(eye=(0, 0, 60), target=(0, 0, 0), width=32, height=32)
+        >>> m = sphere(10.0, 3)
+        >>> near = layer_gbuffer(m, cam.view_proj(), 32)
+        >>> far = layer_gbuffer(m, cam.view_proj(), 32, farthest=True)
+        >>> round(near.position[0, 2, 16, 16].item(), 1), round(far.position[0, 2, 16, 16].item(), 1)
+        (10.0, -10.0)
+        >>> bool(near.position[0, 0, 0, 0].isnan()), bool(near.depth[0, 0, 16, 16] < far.depth[0, 0, 16, 16])
+        (True, True)
+    """
+    size = (resolution, resolution) if isinstance(resolution, int) and not isinstance(resolution, bool) else resolution
+    clip = transform_points(mesh.vertices, view_proj)
+    if farthest:
+        clip = clip * torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=clip.dtype, device=clip.device)
+    raster = rasterize(clip, mesh.faces, size)
+    mask = raster.mask
+    position = interpolate(mesh.vertices, raster, mesh.faces)
+    if fill != 0.0:  # interpolate already gives zeros on the background (NaN != 0 too)
+        position = torch.where(mask, position, torch.full_like(position, fill))
+    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * mask
+    depth = torch.where(mask, -raster.depth, raster.depth) if farthest else raster.depth
+    return LayerGBuffer(position, normal, mask, depth, raster.face_id, raster.bary)
 
 
 def _check_in_front(mesh: Mesh, cam: Camera) -> None:
@@ -84,17 +149,15 @@ def camera_gbuffer(mesh: Mesh, camera: Camera) -> GBuffer:
     """
     _check_in_front(mesh, camera)
     dtype, device = mesh.vertices.dtype, mesh.vertices.device
-    clip = transform_points(mesh.vertices, camera.view_proj(dtype=dtype, device=device))
-    raster = rasterize(clip, mesh.faces, camera.resolution)
-    position = interpolate(mesh.vertices, raster, mesh.faces)
-    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * raster.mask
+    layer = layer_gbuffer(mesh, camera.view_proj(dtype=dtype, device=device), camera.resolution, fill=0.0)
+    position, normal, mask = layer.position, layer.normal, layer.mask
     eye = torch.tensor(camera.eye, dtype=dtype, device=device).view(1, 3, 1, 1)
     if camera.projection == "orthographic":
         fwd = torch.tensor(camera.target, dtype=dtype, device=device).view(1, 3, 1, 1) - eye
         view_dir = (-_normalize(fwd)).expand_as(position)
     else:
         view_dir = _normalize(eye - position)
-    return GBuffer(position, normal, view_dir * raster.mask, raster.face_id, raster.mask)
+    return GBuffer(position, normal, view_dir * mask, layer.face_id, mask)
 
 
 class LightView(NamedTuple):
@@ -143,7 +206,9 @@ def light_view(
         mesh: the object (mm).
         light: a point, spot or directional light.
         resolution: light-view width and height in pixels.
-        eta: relative index of refraction for the Fresnel transmittance.
+        eta: relative index of refraction for the Fresnel transmittance: a number, a :math:`()` or :math:`(1,)`
+            tensor or a per-channel :math:`(3,)` tensor; gradients flow to a tensor ``eta`` (through ``irradiance``
+            and ``flux``).
         fresnel: ``"exact"``, ``"schlick"`` or ``"none"``.
         min_cos: lower bound of :math:`\\cos\\theta` in :math:`dA` (0 < min_cos <= 1); ``flux`` is not clamped.
 
@@ -156,27 +221,18 @@ def light_view(
     """
     if not 0.0 < min_cos <= 1.0:
         raise ValueError(f"min_cos: expected a value in (0, 1], got {min_cos!r}")
-    if fresnel not in ("exact", "schlick", "none"):
-        raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
+    check_fresnel(fresnel)
     centre, radius = bounding_sphere(mesh)
     cam = light_camera(light, centre, radius, resolution)
     dtype, device = mesh.vertices.dtype, mesh.vertices.device
-    clip = transform_points(mesh.vertices, cam.view_proj(dtype=dtype, device=device))
-    raster = rasterize(clip, mesh.faces, (resolution, resolution))
-    mask = raster.mask
-    position = interpolate(mesh.vertices, raster, mesh.faces)
-    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * mask
+    layer = layer_gbuffer(mesh, cam.view_proj(dtype=dtype, device=device), resolution, fill=0.0)
+    position, normal, mask = layer.position, layer.normal, layer.mask
     pts = position.flatten(2).transpose(1, 2)
     to_light, dist, e_perp = incident_light(light, pts)
     cos = (normal.flatten(2).transpose(1, 2) * to_light).sum(-1)
     lit = (cos > 0) & mask.flatten(1)
     cos_c = cos.clamp_min(0.0)
-    if fresnel == "exact":
-        ft = fresnel_transmittance(cos_c, eta)
-    elif fresnel == "schlick":
-        ft = schlick_transmittance(cos_c, eta)
-    else:
-        ft = torch.ones_like(cos_c)
+    ft = transmittance(cos_c.unsqueeze(-1), _channel_eta(eta, cos_c), fresnel)  # (1, HW, 1) or per channel (1, HW, 3)
     if cam.projection == "orthographic":
         s = 2.0 * cam.ortho_half_height / resolution
         footprint = torch.full_like(cos, s * s)
@@ -187,12 +243,12 @@ def light_view(
         cos_alpha = (-v[..., 2]) / v.norm(dim=-1).clamp_min(1e-12)
         footprint = s * s * cos_alpha**3 * torch.where(lit, dist, torch.zeros_like(dist)) ** 2
     area = torch.where(mask.flatten(1), footprint / cos_c.clamp_min(min_cos), torch.zeros_like(footprint))
-    flux = e_perp * (footprint * ft * lit).unsqueeze(-1)
-    irradiance = e_perp * (cos_c * ft * lit).unsqueeze(-1)
+    flux = e_perp * (footprint.unsqueeze(-1) * ft * lit.unsqueeze(-1))
+    irradiance = e_perp * (cos_c.unsqueeze(-1) * ft * lit.unsqueeze(-1))
     h = w = resolution
 
     def _img(x: Tensor) -> Tensor:
         return x.transpose(1, 2).reshape(x.shape[0], -1, h, w)
 
     return LightView(position, normal, _img(irradiance), _img(area.unsqueeze(-1)), _img(flux), mask,
-                     raster.face_id, cam, raster.bary)
+                     layer.face_id, cam, layer.bary)

@@ -26,16 +26,15 @@ import time
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from torchsss._checks import as_float_tensor
 from torchsss.geometry.atlas import Atlas
 from torchsss.geometry.mesh import Mesh, check_mesh
-from torchsss.physics.dipole import dipole_rd
 
 __all__ = [
     "BlendWeights",
@@ -94,17 +93,40 @@ def _check_bool(x: object, name: str) -> bool:
     return x
 
 
-def _material(mesh: Mesh, sigma_a: object, sigma_s_prime: object, eta: object) -> tuple[Tensor, Tensor, Tensor]:
-    """Material as float64 tensors on the mesh's device; validated by a probe evaluation of the profile."""
-    like = torch.zeros((), dtype=torch.float64, device=mesh.device)
-    sa = as_float_tensor(sigma_a, "sigma_a", like=like).detach().to(like)
-    ss = as_float_tensor(sigma_s_prime, "sigma_s_prime", like=like).detach().to(like)
-    et = as_float_tensor(eta, "eta", like=like).detach().to(like)
-    for name, x in (("sigma_a", sa), ("sigma_s_prime", ss), ("eta", et)):
-        if x.dim() > 1:
-            raise ValueError(f"{name}: expected a scalar or a (C,) tensor, got shape {tuple(x.shape)}")
-    dipole_rd(like.view(1, 1), sa, ss, et)  # raises on bad coefficients / shapes
-    return sa, ss, et
+def _profile64(profile: object, device: torch.device) -> tuple[Callable[[Tensor], Tensor], int]:
+    """The profile as a float64, gradient-free callable ``(..., 1) mm -> (..., C)``, and its channel count C.
+
+    Validated by a probe evaluation at r = 1 mm.
+    """
+    if not callable(profile):
+        raise TypeError(f"profile: expected a callable from distances (..., 1) in mm to R_d (..., C) (a material "
+                        f"module such as DipoleMaterial), got {type(profile).__name__}")
+
+    def f(r: Tensor) -> Tensor:
+        with torch.no_grad():
+            return profile(r).detach().to(torch.float64)
+
+    probe = f(torch.ones(1, 1, dtype=torch.float64, device=device))
+    if probe.dim() != 2 or probe.shape[0] != 1:
+        raise ValueError(f"profile: expected R_d of shape (N, C) for distances (N, 1), got {tuple(probe.shape)}")
+    return f, int(probe.shape[-1])
+
+
+def _disk_mean_peak(profile: Callable[[Tensor], Tensor], area: float, device: torch.device) -> float:
+    """:math:`\\max_c \\int_{disk(A)} R\\,dA` (the self throughput of an element of area A), by Gauss-Legendre.
+
+    The reference of the relative throughput threshold: an element's throughput to itself is the integral of the
+    profile over its own disk (as the modules' self terms), not :math:`A R(0)`, which grows without bound for
+    profiles narrower than the element (and is infinite for Burley's).
+    """
+    rho = math.sqrt(max(area, 0.0) / math.pi)
+    if rho == 0.0:
+        return 0.0
+    x, w = np.polynomial.legendre.leggauss(64)
+    r = torch.tensor(0.5 * rho * (x + 1.0), dtype=torch.float64, device=device)
+    wt = torch.tensor(0.5 * rho * w, dtype=torch.float64, device=device)
+    vals = profile(r.unsqueeze(-1)) * (2.0 * math.pi * r * wt).unsqueeze(-1)
+    return float(vals.sum(0).amax())
 
 
 def _distance(a: Tensor, b: Tensor) -> Tensor:
@@ -289,36 +311,37 @@ class Throughput(NamedTuple):
     build_seconds: float
 
 
-def _max_rd(r: Tensor, sa: Tensor, ss: Tensor, eta: Tensor) -> Tensor:
+def _max_rd(r: Tensor, profile: Callable[[Tensor], Tensor]) -> Tensor:
     """:math:`\\max_c R_d(r)` for ``r`` of any shape (float64)."""
-    return dipole_rd(r.unsqueeze(-1), sa, ss, eta).amax(-1)
+    return profile(r.unsqueeze(-1)).amax(-1)
 
 
-def _absolute_threshold(vertex_area64: Tensor, sa: Tensor, ss: Tensor, eta: Tensor, threshold: float,
+def _absolute_threshold(vertex_area64: Tensor, profile: Callable[[Tensor], Tensor], threshold: float,
                         relative: bool) -> float:
-    """Absolute threshold on :math:`\\max_c F_{ij}`; the maximum of F is on the diagonal (R_d decreases in r)."""
+    """Absolute threshold on :math:`\\max_c F_{ij}`: relative to the largest self throughput.
+
+    The largest entry of F is an element's throughput to itself, the integral of the profile over its own disk
+    (:func:`_disk_mean_peak`), largest for the largest vertex area (the integral grows with the disk).
+    """
     if not relative:
         return threshold
-    zero = torch.zeros((), dtype=torch.float64, device=vertex_area64.device)
-    f_max = float(vertex_area64.max()) * float(_max_rd(zero, sa, ss, eta))
-    return threshold * f_max
+    return threshold * _disk_mean_peak(profile, float(vertex_area64.max()), vertex_area64.device)
 
 
-def _keep_radius(area: float, sa: Tensor, ss: Tensor, eta: Tensor, thr: float) -> float:
+def _keep_radius(area: float, profile: Callable[[Tensor], Tensor], thr: float, device: torch.device) -> float:
     """Smallest r with ``area * max_c R_d(r) < thr`` (a bound on the kept distances), inf when thr <= 0."""
     if thr <= 0:
         return math.inf
-    zero = torch.zeros((), dtype=torch.float64)
-    sa, ss, eta = sa.cpu(), ss.cpu(), eta.cpu()
+    zero = torch.zeros((), dtype=torch.float64, device=device)
     hi = 1.0
-    while area * float(_max_rd(zero + hi, sa, ss, eta)) >= thr:
+    while area * float(_max_rd(zero + hi, profile)) >= thr:
         hi *= 2.0
         if hi > 1e12:
             return math.inf
     lo = 0.0
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        if area * float(_max_rd(zero + mid, sa, ss, eta)) >= thr:
+        if area * float(_max_rd(zero + mid, profile)) >= thr:
             lo = mid
         else:
             hi = mid
@@ -327,9 +350,7 @@ def _keep_radius(area: float, sa: Tensor, ss: Tensor, eta: Tensor, thr: float) -
 
 def build_throughput(
     mesh: Mesh,
-    sigma_a: Tensor | float,
-    sigma_s_prime: Tensor | float,
-    eta: Tensor | float = 1.3,
+    profile: Callable[[Tensor], Tensor],
     *,
     threshold: float = 1e-5,
     relative: bool = True,
@@ -342,7 +363,8 @@ def build_throughput(
 
     :math:`F_{ij} = A_i/3\\, R_d(|v_i - v_j|)` (``i`` source, ``j`` receiver, :math:`B^g_j = \\sum_i E^g_i
     F_{ij}`); an entry is kept when :math:`\\max_c F_{ij} \\ge` the threshold. The default is **relative**
-    (``threshold * max_ij max_c F_ij``, the maximum being :math:`\\max_i A_i/3 \\cdot \\max_c R_d(0)`): F is
+    (``threshold * max_i max_c F_ii``, the self throughput :math:`F_{ii} = \\int_{disk(A_i/3)} R_d\\,dA` of the
+    largest vertex, the integral of the profile over its own disk as in the modules' self terms): F is
     dimensionless but its scale depends on the mesh's resolution (vertex areas) and on the material, so an
     absolute 1e-5 (Lensch's value, for their meshes and units) keeps very different fractions of the matrix on
     different meshes; the relative rule keeps the same dynamic range everywhere. ``relative=False`` applies the
@@ -356,9 +378,9 @@ def build_throughput(
 
     Args:
         mesh: Vertices in mm.
-        sigma_a: Absorption, mm^-1, scalar or :math:`(C,)`.
-        sigma_s_prime: Reduced scattering, mm^-1, scalar or :math:`(C,)`.
-        eta: Relative index of refraction.
+        profile: The material's profile: distances :math:`(..., 1)` mm -> :math:`R_d` :math:`(..., C)` mm^-2 (a
+            material module of the profile contract, e.g. :class:`~torchsss.DipoleMaterial`, evaluated without
+            gradient in float64).
         threshold: Keep :math:`\\max_c F_{ij} \\ge` threshold (relative: in [0, 1], times max F).
         relative: See above; default True.
         zero_diagonal: Drop ``i == j`` (Lensch's :math:`F^0` for blending).
@@ -375,7 +397,8 @@ def build_throughput(
 
     Examples:
         >>> from torchsss.geometry import sphere
-        >>> tp = build_throughput(sphere(10.0, 2), [0.0021, 0.0041, 0.0071], [2.19, 2.62, 3.00])  # marble
+        >>> from torchsss.modules import DipoleMaterial
+        >>> tp = build_throughput(sphere(10.0, 2), DipoleMaterial.from_preset("marble"))
         >>> tp.num_vertices, tp.rows.shape == tp.distance.shape, tp.relative
         (162, True, True)
         >>> values = throughput_values(tp, lambda r: r.new_ones(r.shape[0], 3))   # any profile (nnz, 1) -> (nnz, C)
@@ -391,8 +414,7 @@ def build_throughput(
         raise TypeError(f"max_memory_mb: expected a positive number, got {type(max_memory_mb).__name__}")
     if not math.isfinite(float(max_memory_mb)) or max_memory_mb <= 0:
         raise ValueError(f"max_memory_mb: expected a positive finite number, got {max_memory_mb!r}")
-    sa, ss, et = _material(mesh, sigma_a, sigma_s_prime, eta)
-    channels = int(torch.broadcast_shapes(sa.shape, ss.shape, et.shape, (1,))[-1])
+    prof, channels = _profile64(profile, mesh.vertices.device)
     n = mesh.num_vertices
     if block_rows is None:
         per_row = 8.0 * n * (8 + 2 * channels)  # bytes of the float64 temporaries of one row
@@ -405,8 +427,8 @@ def build_throughput(
 
     v = mesh.vertices.detach().to(torch.float64)
     va = mesh.vertex_areas.detach().to(torch.float64)
-    thr = _absolute_threshold(va, sa, ss, et, threshold, relative)
-    radius = _keep_radius(float(va.max()), sa, ss, et, thr)
+    thr = _absolute_threshold(va, prof, threshold, relative)
+    radius = _keep_radius(float(va.max()), prof, thr, v.device)
     diagonal = float((v.amax(0) - v.amin(0)).norm())
     rows, cols, dists = [], [], []
     if radius < 0.5 * diagonal:
@@ -420,7 +442,7 @@ def build_throughput(
         for lo in tqdm(range(0, cand_r.numel(), block), desc="throughput", unit="block", disable=not progress):
             r_idx, c_idx = cand_r[lo:lo + block], cand_c[lo:lo + block]
             d = _distance(v[r_idx], v[c_idx])
-            keep = va[r_idx] * _max_rd(d, sa, ss, et) >= thr
+            keep = va[r_idx] * _max_rd(d, prof) >= thr
             if zero_diagonal:
                 keep &= r_idx != c_idx
             rows.append(r_idx[keep])
@@ -433,7 +455,7 @@ def build_throughput(
         for lo in tqdm(range(0, n, block_rows), desc="throughput", unit="block", disable=not progress):
             hi = min(n, lo + block_rows)
             d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
-            f = va[lo:hi, None] * _max_rd(d, sa, ss, et)
+            f = va[lo:hi, None] * _max_rd(d, prof)
             keep = f >= thr
             if zero_diagonal:
                 keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
@@ -502,9 +524,7 @@ class BlendWeights(NamedTuple):
 def blending_weights(
     mesh: Mesh,
     atlas: Atlas,
-    sigma_a: Tensor | float,
-    sigma_s_prime: Tensor | float,
-    eta: Tensor | float = 1.3,
+    profile: Callable[[Tensor], Tensor],
     *,
     kernel_size: int = 7,
     threshold: float = 1e-5,
@@ -538,9 +558,7 @@ def blending_weights(
     Args:
         mesh: The mesh of the atlas, mm.
         atlas: Its texture atlas (``padding >= k//2 + 1`` so that the ring reads filled texels).
-        sigma_a: Absorption, mm^-1, scalar or :math:`(C,)`.
-        sigma_s_prime: Reduced scattering, mm^-1.
-        eta: Relative index of refraction.
+        profile: The material's profile, as in :func:`build_throughput`.
         kernel_size: Odd ``k`` of the local kernels.
         threshold: Throughput threshold, as in :func:`build_throughput`.
         relative: As in :func:`build_throughput`.
@@ -560,7 +578,8 @@ def blending_weights(
         >>> from torchsss.geometry import build_atlas, sphere
         >>> mesh = sphere(5.0, 1)
         >>> atlas = build_atlas(mesh, 32, kernel_size=3)
-        >>> bw = blending_weights(mesh, atlas, [0.0021, 0.0041, 0.0071], [2.19, 2.62, 3.00], kernel_size=3)
+        >>> from torchsss.modules import DipoleMaterial
+        >>> bw = blending_weights(mesh, atlas, DipoleMaterial.from_preset("marble"), kernel_size=3)
         >>> tuple(bw.weights.shape), tuple(bw.kernel_correction.shape)
         ((3, 3, 32, 32), (3, 32, 32, 3, 3))
     """
@@ -574,14 +593,12 @@ def blending_weights(
     if chunk_texels < 1:
         raise ValueError(f"chunk_texels: expected a positive int, got {chunk_texels}")
     vw = vertex_weights(mesh, atlas)
-    sa, ss, et = _material(mesh, sigma_a, sigma_s_prime, eta)
     device = atlas.position.device
-    sa, ss, et = sa.to(device), ss.to(device), et.to(device)
-    channels = int(torch.broadcast_shapes(sa.shape, ss.shape, et.shape, (1,))[-1])
+    prof, channels = _profile64(profile, device)
     f64 = torch.float64
     v = mesh.vertices.detach().to(device=device, dtype=f64)
     va = mesh.vertex_areas.detach().to(device=device, dtype=f64)
-    thr = _absolute_threshold(va, sa, ss, et, threshold, relative)
+    thr = _absolute_threshold(va, prof, threshold, relative)
 
     height, width = atlas.shape
     r = k // 2
@@ -621,13 +638,13 @@ def blending_weights(
         bary_s = bary[s] * ok[..., None]
         # F^0 between the 3 source-face vertices (nu) and the 3 receiver-face vertices (m), per channel
         d_vv = _distance(v[ids_o][:, None, :, None, :], v[ids_s][:, :, None, :, :])  # (M, P, 3, 3)
-        rd = dipole_rd(d_vv.unsqueeze(-1), sa, ss, et)  # (M, P, 3, 3, C)
+        rd = prof(d_vv.unsqueeze(-1))  # (M, P, 3, 3, C)
         f0 = va[ids_o][:, None, :, None, None] * rd
         keep = (f0.amax(-1) >= thr) & (ids_o[:, None, :, None] != ids_s[:, :, None, :])
         f0 = f0 * keep[..., None]
         b_g0 = torch.einsum("mn,mpnqc,mpq->mpc", dual[o], f0, bary_s)  # (M, P, C)
         hat = torch.einsum("mpq,mpnq->mpn", bary_s, (ids_s[:, :, None, :] == ids_o[:, None, :, None]).to(f64))
-        target = area[o][:, None, None] * dipole_rd(_distance(pos[o][:, None, :], pos[s])[..., None], sa, ss, et)
+        target = area[o][:, None, None] * prof(_distance(pos[o][:, None, :], pos[s])[..., None])
         ring = (ok & on_ring).to(f64)[..., None]
         h_ring = hat * ring  # (M, P, 3)
         gram = h_ring.transpose(1, 2) @ h_ring  # (M, 3, 3)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchsss._checks import check_shape, check_tensor
 from torchsss.geometry.environment import EnvironmentLight, environment_irradiance
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, transmittance
 
 __all__ = [
     "DirectionalLight",
@@ -180,6 +180,19 @@ def _smoothstep(edge0: float, edge1: float, x: Tensor) -> Tensor:
     return t * t * (3.0 - 2.0 * t)
 
 
+def _channel_eta(eta: Tensor | float, like: Tensor) -> Tensor | float:
+    """``eta`` ready to broadcast against channels-last :math:`(..., 1)` cosines (a number stays a number).
+
+    A :math:`()` or :math:`(1,)` tensor applies to every channel, a :math:`(3,)` tensor is per channel; a tensor is
+    moved to ``like``'s device (differentiably: the autograd graph to ``eta`` is kept).
+    """
+    if not isinstance(eta, Tensor):
+        return eta
+    if eta.dim() > 1 or (eta.dim() == 1 and eta.shape[0] not in (1, 3)):
+        raise ValueError(f"eta: expected a number, a 0-dim tensor or shape (1,) or (3,), got {tuple(eta.shape)}")
+    return eta.to(device=like.device)
+
+
 def incident_light(light: Light, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Direction to the light, distance and the normal-incidence irradiance at every point.
 
@@ -240,7 +253,8 @@ def surface_irradiance(
         points: :math:`(B, N, 3)` positions in mm.
         normals: :math:`(B, N, 3)` unit outward normals.
         lights: one light or a sequence of lights (their contributions add up).
-        eta: relative index of refraction of the material (scalar or 0-dim tensor).
+        eta: relative index of refraction of the material: a number, a :math:`()` or :math:`(1,)` tensor, or a
+            per-channel :math:`(3,)` tensor; gradients flow to a tensor ``eta``.
         visibility: per light a :math:`(B, N)` tensor in [0, 1] (1 = lit) or None (unshadowed); a single
             tensor is accepted when there is one light. An :class:`~torchsss.geometry.environment.EnvironmentLight`
             is always unshadowed (its entry must be None), see
@@ -259,8 +273,8 @@ def surface_irradiance(
     check_tensor(normals, "normals")
     dims = check_shape(points, "points", "B,N,3")
     check_shape(normals, "normals", "B,N,3", **dims)
-    if fresnel not in ("exact", "schlick", "none"):
-        raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
+    check_fresnel(fresnel)
+    eta_c = _channel_eta(eta, points)
     single = (PointLight, DirectionalLight, SpotLight, EnvironmentLight)
     light_list = [lights] if isinstance(lights, single) else list(lights)
     if isinstance(visibility, Tensor) or visibility is None:
@@ -277,14 +291,8 @@ def surface_irradiance(
             total = total + environment_irradiance(light, normals, eta, fresnel=fresnel)
             continue
         to_light, _, e = incident_light(light, points)
-        cos = (normals * to_light).sum(-1).clamp_min(0.0)
-        if fresnel == "exact":
-            ft = fresnel_transmittance(cos, eta)
-        elif fresnel == "schlick":
-            ft = schlick_transmittance(cos, eta)
-        else:
-            ft = torch.ones_like(cos)
-        term = e * (cos * ft).unsqueeze(-1)
+        cos = (normals * to_light).sum(-1, keepdim=True).clamp_min(0.0)
+        term = e * (cos * transmittance(cos, eta_c, fresnel))
         if vis is not None:
             check_tensor(vis, "visibility")
             check_shape(vis, "visibility", "B,N", **dims)

@@ -40,6 +40,7 @@ from torchsss.geometry.environment import EnvironmentLight, environment_irradian
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.geometry.raster import depth_peel
 from torchsss.geometry.shadow import bounding_sphere
+from torchsss.physics.fresnel import check_fresnel
 
 __all__ = ["EnvironmentSplats", "axis_camera", "environment_splats"]
 
@@ -133,8 +134,7 @@ def environment_splats(mesh: Mesh, env: EnvironmentLight, resolution: int, eta: 
         raise ValueError(f"axes: expected 1 or 3, got {axes!r}")
     if not (isinstance(min_cos, (int, float)) and 0.0 < min_cos <= 1.0):
         raise ValueError(f"min_cos: expected a value in (0, 1], got {min_cos!r}")
-    if fresnel not in ("exact", "schlick", "none"):
-        raise ValueError(f"fresnel: expected 'exact', 'schlick' or 'none', got {fresnel!r}")
+    check_fresnel(fresnel)
     dtype, device = mesh.dtype, mesh.device
     view_axes = (0, 1, 2) if axes == 3 else (2,)
     fids, barys, areas, layer_counts = [], [], [], []

@@ -15,6 +15,8 @@ for it (cube maps are not implemented). Points outside the light's frustum are r
 from __future__ import annotations
 
 import math
+import numbers
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -48,44 +50,125 @@ def _up_for(direction: tuple[float, float, float]) -> tuple[float, float, float]
     return (0.0, 0.0, 1.0) if abs(direction[1]) > 0.9 * math.sqrt(sum(c * c for c in direction)) else (0.0, 1.0, 0.0)
 
 
-def light_camera(light: Light, centre: tuple[float, float, float], radius: float, resolution: int) -> Camera:
+def _positive(value: object, name: str, upper: float | None = None, closed: bool = True) -> float:
+    """``value`` as a float in (0, upper] (``closed``) or (0, upper); TypeError / ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name}: expected a real number, got {type(value).__name__}")
+    v = float(value)
+    if not (math.isfinite(v) and v > 0 and (upper is None or v < upper or (closed and v == upper))):
+        expected = "a finite number > 0" if upper is None else f"a number in (0, {upper:g}{']' if closed else ')'}"
+        raise ValueError(f"{name}: expected {expected}, got {value!r}")
+    return v
+
+
+def light_camera(
+    light: Light,
+    centre: tuple[float, float, float],
+    radius: float,
+    resolution: int,
+    *,
+    margin: float = 1.02,
+    points: Tensor | None = None,
+    max_half_angle_deg: float | None = None,
+    near_fraction: float | None = None,
+) -> Camera:
     """A camera at the light that sees the whole bounding sphere ``(centre, radius)`` (mm).
 
-    Point and spot lights get a perspective camera from the light's position towards the centre with the
-    tightest field of view that holds the sphere (plus 2%); directional lights an orthographic camera along
-    the light direction.
+    Point and spot lights get a perspective camera from the light's position towards the centre, directional lights
+    an orthographic camera along the light direction, both sized on the sphere of radius :math:`R =` ``margin``
+    :math:`\\cdot` ``radius``: the orthographic half-height is :math:`R`, the perspective half angle
+    :math:`\\arcsin(\\min(1, R/d))` (d the light's distance to the centre), at most ``max_half_angle_deg``. The
+    defaults are the shadow-map camera: the tightest view that holds the sphere plus 2%.
+
+    Near and far planes: without ``points``, those of the sphere of radius :math:`R` (perspective
+    :math:`\\max(d - R, 10^{-3} d)` and :math:`d + R`; orthographic, with the eye :math:`2R` before the centre,
+    :math:`0.5 R` and :math:`3.5 R`). With ``points``, the planes enclose the points' distances along the axis
+    (orthographic: their range padded by :math:`0.01\\,` ``radius`` :math:`+ 10^{-3}` mm on both sides;
+    perspective: far at :math:`1.01 \\max(\\text{farthest point}, d + R) + 10^{-3}` mm), except that a perspective
+    near plane stays at its own rule. ``near_fraction`` puts the perspective near plane at that fraction of the
+    distance :math:`d - ` ``radius`` to the sphere (points nearer the light are clipped).
+
+    The camera's up is +y, or +z when the view axis is within :math:`\\arccos 0.9` of the y axis.
+
+    Args:
+        light: a point, spot or directional light.
+        centre: bounding-sphere centre (mm).
+        radius: bounding-sphere radius (mm, > 0).
+        resolution: image width and height in pixels.
+        margin: half-extent of the view over ``radius`` (> 0; e.g. room for light bent outside the silhouette).
+        points: optional :math:`(N, 3)` points (mm, any floating dtype and device) whose depth range near and far
+            must enclose, e.g. every vertex of a scene.
+        max_half_angle_deg: cap of the perspective half angle in degrees, in (0, 90) (default: no cap).
+        near_fraction: perspective near plane at this fraction (in (0, 1]) of :math:`d -` ``radius``.
 
     Raises:
-        ValueError: a point or spot light inside the bounding sphere (or within 1% of its radius outside it).
+        TypeError: a wrong light or option type.
+        ValueError: values out of range; a point or spot light inside the sphere of radius :math:`R` (within 1% of
+            it) or, when ``max_half_angle_deg`` is given (the view need not hold all of that sphere), inside the
+            bounding sphere itself (within 1%).
 
     Examples:
         >>> cam = light_camera(PointLight((0, 0, 100), 1.0), (0, 0, 0), 10.0, 64)
         >>> cam.projection, round(cam.fov_deg, 2)
         ('perspective', 11.71)
+        >>> cam = light_camera(PointLight((0, 0, 12), 1.0), (0, 0, 0), 10.0, 64, margin=1.5, max_half_angle_deg=80.0,
+        ...                    near_fraction=0.5)
+        >>> round(cam.fov_deg, 1), round(cam.near, 3)
+        (160.0, 1.0)
     """
     if not (radius > 0 and math.isfinite(radius)):
         raise ValueError(f"radius: expected a finite value > 0, got {radius!r}")
     if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
         raise ValueError(f"resolution: expected a positive int, got {resolution!r}")
-    r = radius * 1.02
+    r = radius * _positive(margin, "margin")
+    cap = None if max_half_angle_deg is None else _positive(max_half_angle_deg, "max_half_angle_deg", 90.0, False)
+    near_frac = None if near_fraction is None else _positive(near_fraction, "near_fraction", 1.0)
+    depth_pts = None
+    if points is not None:
+        check_tensor(points, "points")
+        check_shape(points, "points", "N,3")
+        if points.shape[0] == 0 or not bool(torch.isfinite(points).all()):
+            raise ValueError(f"points: expected at least one point, all finite, got shape {tuple(points.shape)}")
+        depth_pts = points.detach().to(device="cpu", dtype=torch.float64)
+
+    def along(origin: Sequence[float], axis: Sequence[float]) -> Tensor:
+        o = torch.tensor(origin, dtype=torch.float64)
+        return (depth_pts - o) @ torch.tensor(axis, dtype=torch.float64)
+
     if isinstance(light, DirectionalLight):
         d = light.direction
         eye = tuple(c - 2.0 * r * di for c, di in zip(centre, d))
+        if depth_pts is None:
+            near, far = 0.5 * r, 3.5 * r
+        else:
+            depth, pad = along(eye, d), 0.01 * radius + 1e-3
+            near, far = float(depth.min()) - pad, float(depth.max()) + pad
         return Camera(eye=eye, target=tuple(centre), up=_up_for(d), width=resolution, height=resolution,
-                      near=0.5 * r, far=3.5 * r, projection="orthographic", ortho_half_height=r)
+                      near=near, far=far, projection="orthographic", ortho_half_height=r)
     if not isinstance(light, (PointLight, SpotLight)):
         raise TypeError(f"light: expected PointLight, DirectionalLight or SpotLight, got {type(light).__name__}")
     offset = tuple(c - p for c, p in zip(centre, light.position))
     dist = math.sqrt(sum(o * o for o in offset))
-    if dist <= r * 1.01:
+    inside = radius if cap is not None else r
+    if dist <= inside * 1.01:
+        kind = "spot" if isinstance(light, SpotLight) else "point"
         raise ValueError(
-            f"light position {light.position}: expected a light outside the object's bounding sphere "
-            f"(centre {tuple(round(c, 3) for c in centre)}, radius {radius:.3f} mm), got distance {dist:.3f} mm; "
-            "one shadow frustum cannot see the whole object from inside it"
+            f"light: expected a {kind} light outside the object's bounding sphere (centre "
+            f"{tuple(round(c, 3) for c in centre)}, radius {radius:.3f} mm; a distance > {1.01 * inside:.3f} mm), "
+            f"got light position {light.position} at distance {dist:.3f} mm; one frustum cannot see the whole "
+            "object from inside it"
         )
-    fov = 2.0 * math.degrees(math.asin(r / dist))
-    return Camera(eye=tuple(light.position), target=tuple(centre), up=_up_for(offset), fov_deg=fov,
-                  width=resolution, height=resolution, near=max(dist - r, 1e-3 * dist), far=dist + r)
+    half = math.degrees(math.asin(min(1.0, r / dist)))
+    if cap is not None:
+        half = min(half, cap)
+    near = max(dist - r, 1e-3 * dist) if near_frac is None else near_frac * (dist - radius)
+    if depth_pts is None:
+        far = dist + r
+    else:
+        axis = tuple(o / dist for o in offset)
+        far = max(float(along(light.position, axis).max()), dist + r) * 1.01 + 1e-3
+    return Camera(eye=tuple(light.position), target=tuple(centre), up=_up_for(offset), fov_deg=2.0 * half,
+                  width=resolution, height=resolution, near=near, far=far)
 
 
 class ShadowMap(NamedTuple):

@@ -3,8 +3,17 @@
 from torchsss.modules.caustics import CausticMap
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
-from torchsss.modules.material import POSITIVE_FLOOR, BurleyMaterial, DipoleMaterial, TabulatedMaterial
+from torchsss.modules.material import (
+    POSITIVE_FLOOR,
+    BurleyMaterial,
+    DipoleMaterial,
+    TabulatedMaterial,
+    check_profile,
+    material_module,
+)
 from torchsss.modules.profile import DipoleProfile
+from torchsss.modules.sampling import IcdfSampler
+from torchsss.modules.search import NewtonRaphsonSearch
 from torchsss.modules.splat import SplatTranslucency
 
 __all__ = [
@@ -15,10 +24,14 @@ __all__ = [
     "DipoleProfile",
     "GlobalResponse",
     "HybridTranslucency",
+    "IcdfSampler",
     "ImportanceSampledTranslucency",
     "IrradianceAtlas",
     "LenschTranslucency",
     "LocalResponse",
+    "NewtonRaphsonSearch",
     "SplatTranslucency",
     "TabulatedMaterial",
+    "check_profile",
+    "material_module",
 ]

@@ -61,8 +61,9 @@ from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
 from torchsss._checks import as_float_tensor, check_positive, check_shape, check_tensor, is_tracing
+from torchsss.modules.search import NewtonRaphsonSearch
 from torchsss.ops.caustic_splat import default_kernel_size, splat_caustics
-from torchsss.ops.newton_raphson import lookup_positions, newton_raphson_intersect
+from torchsss.ops.newton_raphson import lookup_positions
 from torchsss.ops.refraction import reflect, refract
 from torchsss.physics.fresnel import fresnel_reflectance, fresnel_transmittance
 
@@ -167,10 +168,11 @@ class CausticMap(nn.Module):
                 raise TypeError(f"kernel_size: expected an int >= 1 or None, got {type(kernel_size).__name__}")
             if kernel_size < 1:
                 raise ValueError(f"kernel_size: expected an int >= 1 or None, got {kernel_size}")
-        self.mode, self.back, self.method, self.flux = mode, back, method, flux
-        self.iterations = int(iterations)
-        self.back_method = back_method
-        self.back_iterations = int(back_iterations)
+        self.mode, self.back, self.flux = mode, back, flux
+        #: The receiver search (:class:`~torchsss.modules.NewtonRaphsonSearch`, ``iterations`` x ``method``).
+        self.search = NewtonRaphsonSearch(int(iterations), method)
+        #: The back-surface search (``back="search"``; ``back_iterations`` x ``back_method``).
+        self.back_search = NewtonRaphsonSearch(int(back_iterations), back_method)
         self.sigma_px = float(sigma_px)
         self.kernel_size = int(kernel_size) if kernel_size is not None else k_default
         self.fresnel = fresnel
@@ -181,6 +183,26 @@ class CausticMap(nn.Module):
         self.lowpass_sigma_px = lp
         self.register_buffer("ior", _channels(ior, "ior", positive=True))
         self.register_buffer("absorption", _channels(absorption, "absorption", positive=False))
+
+    @property
+    def iterations(self) -> int:
+        """Updates of the receiver search (held by :attr:`search`)."""
+        return self.search.iterations
+
+    @property
+    def method(self) -> str:
+        """Method of the receiver search (held by :attr:`search`)."""
+        return self.search.method
+
+    @property
+    def back_iterations(self) -> int:
+        """Updates of the back-surface search (held by :attr:`back_search`)."""
+        return self.back_search.iterations
+
+    @property
+    def back_method(self) -> str:
+        """Method of the back-surface search (held by :attr:`back_search`)."""
+        return self.back_search.method
 
     # -- validation ----------------------------------------------------------------------------------------------
     def _check(self, front_position, front_normal, front_mask, back_position, back_normal, back_mask,
@@ -325,9 +347,8 @@ class CausticMap(nn.Module):
                 inside_len = d_in
                 weight = weight * w2
 
-        d_r, hit = newton_raphson_intersect(
-            origin.reshape(b, n * c, 3), out_dir.reshape(b, n * c, 3), receiver_position.to(dtype), view_proj,
-            self.iterations, self.method,
+        d_r, hit = self.search(
+            origin.reshape(b, n * c, 3), out_dir.reshape(b, n * c, 3), receiver_position.to(dtype), view_proj
         )
         d_r = d_r.reshape(b, n, c)
         alive = alive & hit.reshape(b, n, c)
@@ -358,10 +379,7 @@ class CausticMap(nn.Module):
         back_tex = torch.where(bmask, back_position.to(dtype), nan.to(dtype))
         origin = p[:, :, None, :].expand(exp_c)
         if self.back == "search":
-            d, found = newton_raphson_intersect(
-                origin.reshape(b, n * c, 3), t1.reshape(b, n * c, 3), back_tex, view_proj,
-                self.back_iterations, self.back_method,
-            )
+            d, found = self.back_search(origin.reshape(b, n * c, 3), t1.reshape(b, n * c, 3), back_tex, view_proj)
             d, found = d.reshape(b, n, c), found.reshape(b, n, c)
         else:
             pb = _flat(back_tex)

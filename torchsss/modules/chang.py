@@ -48,7 +48,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchsss._checks import check_int, check_nonnegative, check_positive, check_shape, check_tensor, is_tracing
-from torchsss.ops.icdf import MAX_LEVELS, icdf_sample
+from torchsss.modules.sampling import IcdfSampler
+from torchsss.ops.icdf import MAX_LEVELS
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS, reference_radiosity
 from torchsss.physics.budget import chang_rp, chang_weights
 
@@ -95,7 +96,9 @@ class ImportanceSampledTranslucency(nn.Module):
         irradiance_scale: optional :math:`(1, 1|C, H, W)` irradiance modulation :math:`M_i \\ge 0`.
         translucency_mask: optional :math:`(1, 1, H, W)` bool or weights in [0, 1]; 0 = the texel is not
             translucent and sends no subsurface light.
-        levels: pyramid depth of the sampler (default: the smallest that fits; give it to export one graph).
+        levels: pyramid depth of the sampler, fixed at construction (default: the smallest that fits the
+            atlas, :func:`~torchsss.ops.icdf.pyramid_levels` ``(H, W)``), so ``torch.compile`` and ONNX export work
+            with the defaults.
         max_pairs: (receiver, sample) pairs evaluated at once per batch element (bounds memory).
 
     Shapes:
@@ -154,7 +157,8 @@ class ImportanceSampledTranslucency(nn.Module):
                 raise ValueError("translucency_mask: expected values in [0, 1], got values outside")
             weight = weight * tm
         self.material = material
-        self.levels = levels
+        #: The texel sampler, its pyramid depth fixed for this atlas's (H, W).
+        self.sampler = IcdfSampler(levels, size=(h, w))
         self.max_pairs = max_pairs
         self.register_buffer("position", position.detach().clone())
         #: Source weight of every texel: area x chart mask x translucency mask (mm^2).
@@ -178,6 +182,11 @@ class ImportanceSampledTranslucency(nn.Module):
     def shape(self) -> tuple[int, int]:
         """Atlas ``(H, W)``."""
         return int(self.position.shape[-2]), int(self.position.shape[-1])
+
+    @property
+    def levels(self) -> int:
+        """Pyramid depth of the sampler (fixed at construction)."""
+        return self.sampler.levels
 
     def weighted_irradiance(self, irradiance: Tensor) -> Tensor:
         """:math:`E' = E\\,M_i\\,A` per texel :math:`(B, C, H, W)` (mm^2 x irradiance): 0 outside the sources."""
@@ -233,7 +242,7 @@ class ImportanceSampledTranslucency(nn.Module):
         else:
             check_tensor(pdf, "pdf")
             check_shape(pdf, "pdf", "B,1,H,W", B=b, H=h, W=w)
-        xy, p = icdf_sample(pdf.detach(), u, self.levels)
+        xy, p = self.sampler(pdf.detach(), u)
         col = xy[..., 0].detach().floor().long().clamp(0, w - 1)
         row = xy[..., 1].detach().floor().long().clamp(0, h - 1)
         idx = row * w + col  # (B, N)
@@ -387,7 +396,8 @@ class HybridTranslucency(nn.Module):
         local_eps: truncation of the local weight.
         grid: radii of the quadrature grid for the ring weights.
         irradiance_scale, translucency_mask: as :class:`ImportanceSampledTranslucency` (applied to both terms).
-        levels, max_pairs: of the global sampler.
+        levels, max_pairs: of the global sampler (``levels`` default: the smallest that fits the atlas, fixed at
+            construction).
 
     Shapes:
         ``forward(irradiance (B, C, H, W), u (B, N, 2), receivers (B, M, 3), receivers_uv (B, M, 2))``

@@ -25,26 +25,28 @@ from torchsss._checks import check_shape, check_tensor
 from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d
-from torchsss.physics.dipole import dipole_cumulative
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, transmittance
 
 __all__ = ["GlobalResponse", "IrradianceAtlas", "LenschTranslucency", "LocalResponse"]
 
 
 def _disk_integral(material: nn.Module, area: Tensor, scale: Tensor | None = None) -> Tensor | None:
-    """:math:`\\int_{disk(A)} R_d(r M_d) dA` (mm^-2 x mm^2) for areas ``(...)`` -> ``(..., C)``; None without a dipole.
+    """:math:`\\int_{disk(A)} R_d(r M_d) dA` (mm^-2 x mm^2) for areas ``(...)`` -> ``(..., C)``.
 
-    The self term of a texel or vertex: sampling :math:`A R_d(0)` overestimates it without bound once the
-    profile is narrower than the element (:math:`R_d(0) \\propto z_r^{-2}`), while the disk integral tends to
-    :math:`R_{total}`, which is what the element really sends to itself.
+    The self term of a texel or vertex, from the material's closed-form ``cumulative`` (the profile contract of
+    :mod:`torchsss.modules.material`; None for a bare profile callable without one): sampling :math:`A R_d(0)`
+    overestimates it without bound once the profile is narrower than the element (:math:`R_d(0) \\propto
+    z_r^{-2}` for the dipole, infinite for Burley's), while the disk integral tends to :math:`R_{total}`, which is
+    what the element really sends to itself.
     """
-    if not all(hasattr(material, a) for a in ("sigma_a", "sigma_s_prime", "eta")):
+    cumulative = getattr(material, "cumulative", None)
+    if cumulative is None:
         return None
     radius = torch.sqrt(area / math.pi).unsqueeze(-1)
     if scale is None:
-        return dipole_cumulative(radius, material.sigma_a, material.sigma_s_prime, material.eta)
+        return cumulative(radius)
     md = scale.unsqueeze(-1)
-    return dipole_cumulative(radius * md, material.sigma_a, material.sigma_s_prime, material.eta) / (md * md)
+    return cumulative(radius * md) / (md * md)
 
 
 def _material_key(material: nn.Module) -> tuple | None:
@@ -95,28 +97,38 @@ class IrradianceAtlas(nn.Module):
         position: :math:`(1, 3, H, W)` texel positions (mm).
         normal: :math:`(1, 3, H, W)` unit texel normals.
         valid: :math:`(1, 1, H, W)` bool, texels that carry surface (chart and filled gutter texels).
-        eta: relative index of refraction for the Fresnel transmittance.
+        eta: the material module (its ``eta`` is read at every call, so an edit or a gradient step on it reaches
+            the Fresnel term: the one home of eta), or a fixed relative index of refraction (a number).
         fresnel: ``"exact"`` or ``"schlick"`` (Lensch uses Schlick).
     """
 
-    def __init__(self, position: Tensor, normal: Tensor, valid: Tensor, eta: float = 1.3, fresnel: str = "exact"):
+    def __init__(self, position: Tensor, normal: Tensor, valid: Tensor, eta: float | nn.Module = 1.3,
+                 fresnel: str = "exact"):
         super().__init__()
         check_tensor(position, "position")
         dims = check_shape(position, "position", "1,3,H,W")
         check_shape(normal, "normal", "1,3,H,W", **dims)
         check_shape(valid, "valid", "1,1,H,W", **dims)
-        if fresnel not in ("exact", "schlick"):
-            raise ValueError(f"fresnel: expected 'exact' or 'schlick', got {fresnel!r}")
-        self.fresnel = fresnel
-        self.eta = float(eta)
+        self.fresnel = check_fresnel(fresnel, ("exact", "schlick"))
+        if isinstance(eta, nn.Module):
+            self.material = eta
+            self._eta = None
+        else:
+            self.material = None
+            self._eta = float(eta)
         self.register_buffer("position", position.detach().clone(), persistent=False)
         self.register_buffer("normal", normal.detach().clone(), persistent=False)
         self.register_buffer("valid", valid.to(position.dtype), persistent=False)
 
     @classmethod
-    def from_atlas(cls, atlas, eta: float = 1.3, fresnel: str = "exact") -> IrradianceAtlas:
-        """Build from a :class:`~torchsss.geometry.atlas.Atlas`."""
+    def from_atlas(cls, atlas, eta: float | nn.Module = 1.3, fresnel: str = "exact") -> IrradianceAtlas:
+        """Build from a :class:`~torchsss.geometry.atlas.Atlas` (``eta``: the material module or a number)."""
         return cls(atlas.position, atlas.normal, atlas.valid_mask, eta, fresnel)
+
+    @property
+    def eta(self) -> Tensor | float:
+        """The relative index of refraction: the material module's, or the fixed number."""
+        return self._eta if self.material is None else self.material.eta
 
     def forward(self, light: Tensor, intensity: Tensor, visibility: Tensor | None = None) -> Tensor:
         """Irradiance atlas :math:`(B, C, H, W)`; ``visibility`` optional :math:`(B, 1, H, W)` in [0, 1]."""
@@ -130,7 +142,10 @@ class IrradianceAtlas(nn.Module):
         to_light = delta / torch.sqrt(safe)
         falloff = torch.where(w > 0, 1.0 / safe, torch.ones_like(safe)) * (d2 > 0)
         cos = (to_light * self.normal).sum(1, keepdim=True).clamp_min(0.0)
-        ft = fresnel_transmittance(cos, self.eta) if self.fresnel == "exact" else schlick_transmittance(cos, self.eta)
+        eta = self.eta
+        if isinstance(eta, Tensor) and eta.dim() == 1 and eta.numel() > 1:
+            eta = eta.view(1, -1, 1, 1)
+        ft = transmittance(cos, eta, self.fresnel)
         e = intensity.view(dims["B"], dims["C"], 1, 1) * (falloff * cos * ft * self.valid)
         if visibility is not None:
             check_shape(visibility, "visibility", "B,1,H,W", B=dims["B"], H=e.shape[-2], W=e.shape[-1])
@@ -351,9 +366,3 @@ class LenschTranslucency(nn.Module):
         else:
             glob = g.reconstruct(vert)
         return self.local(irradiance) + glob
-
-    @staticmethod
-    def radiance(radiosity: Tensor, cos_out: Tensor, eta: float | Tensor, fresnel: str = "exact") -> Tensor:
-        """:math:`L = F_t(\\eta, \\cos\\theta_o)/\\pi \\; B` for radiosity sampled at camera pixels."""
-        ft = fresnel_transmittance(cos_out, eta) if fresnel == "exact" else schlick_transmittance(cos_out, eta)
-        return ft / math.pi * radiosity

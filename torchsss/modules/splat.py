@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from torchsss.modules.material import DipoleMaterial
+from torchsss.modules.material import check_profile
 from torchsss.ops.splat import splat_radiosity
 
 __all__ = ["SplatTranslucency"]
@@ -24,8 +24,10 @@ class SplatTranslucency(nn.Module):
     """Radiosity image :math:`B(x_o) = \\sum_i M_{i,i} R_d^{m_i}(|x_o - x_i| M_{d,i})\\,E_i\\,dA_i` from splats.
 
     Args:
-        material: a :class:`~torchsss.DipoleMaterial`, or a sequence of them (the material table, one row per
-            material; sources pick their row with ``src_material``). Their parameters receive gradients.
+        material: a profile module (:class:`~torchsss.DipoleMaterial`, :class:`~torchsss.BurleyMaterial`,
+            :class:`~torchsss.modules.TabulatedMaterial`, or any module of the profile contract of
+            :mod:`torchsss.modules.material`), or a sequence of them (the material table, one row per material;
+            sources pick their row with ``src_material``). Their parameters receive gradients.
         eps: tail fraction beyond the splat radius :math:`r_{max}(\\epsilon)` (Shah eq. 6.16), per channel; the
             largest channel's radius of each material is used. Fixed when the module is built (a budget is not
             differentiable): rebuild the module after large material changes.
@@ -35,29 +37,29 @@ class SplatTranslucency(nn.Module):
 
     Examples:
         >>> import torch
+        >>> from torchsss import BurleyMaterial, DipoleMaterial
         >>> m = SplatTranslucency(DipoleMaterial.from_preset("skin1"))
         >>> src = torch.tensor([[[0.0, 0.0, 0.0]]]); flux = torch.ones(1, 1, 3)
         >>> pos = torch.zeros(1, 3, 4, 4); mask = torch.ones(1, 1, 4, 4, dtype=torch.bool)
         >>> vp = torch.eye(4).unsqueeze(0)
         >>> m(src, flux, pos, mask, vp).shape
         torch.Size([1, 3, 4, 4])
-        >>> two = SplatTranslucency([DipoleMaterial.from_preset("skin1"), DipoleMaterial.from_preset("marble")])
+        >>> two = SplatTranslucency([DipoleMaterial.from_preset("skin1"), BurleyMaterial.from_preset("marble")])
         >>> ids = torch.tensor([[1]])
         >>> two(src, flux, pos, mask, vp, src_material=ids).shape
         torch.Size([1, 3, 4, 4])
     """
 
-    def __init__(self, material: DipoleMaterial | Sequence[DipoleMaterial], *, eps: float = 0.01,
+    def __init__(self, material: nn.Module | Sequence[nn.Module], *, eps: float = 0.01,
                  method: str = "auto", window: int | None = None) -> None:
         super().__init__()
         materials = [material] if isinstance(material, nn.Module) else material
         if isinstance(materials, (str, bytes)) or not isinstance(materials, Sequence) or len(materials) == 0:
             raise TypeError(
-                f"material: expected a DipoleMaterial or a non-empty sequence of them, got {type(material).__name__}"
+                f"material: expected a profile module or a non-empty sequence of them, got {type(material).__name__}"
             )
         for i, m in enumerate(materials):
-            if not isinstance(m, DipoleMaterial):
-                raise TypeError(f"material[{i}]: expected a DipoleMaterial, got {type(m).__name__}")
+            check_profile(m, f"material[{i}]")
         channels = {m.channels for m in materials}
         if len(channels) != 1:
             raise ValueError(f"material: expected the same number of channels in every material, got {channels}")
@@ -71,16 +73,9 @@ class SplatTranslucency(nn.Module):
         self.register_buffer("r_max", r_max)
 
     @property
-    def material(self) -> DipoleMaterial:
+    def material(self) -> nn.Module:
         """The first (with one material, the only) row of the material table."""
         return self.materials[0]
-
-    def tables(self) -> tuple[Tensor, Tensor, Tensor]:
-        """The material table: ``sigma_a`` and ``sigma_s_prime`` :math:`(M, C)` (mm^-1), ``eta`` :math:`(M,)`."""
-        sa = torch.stack([m.sigma_a.reshape(-1) for m in self.materials])
-        ss = torch.stack([m.sigma_s_prime.reshape(-1) for m in self.materials])
-        eta = torch.stack([m.eta.reshape(()) for m in self.materials])
-        return sa, ss, eta
 
     def forward(self, src_pos: Tensor, src_flux: Tensor, dst_pos: Tensor, dst_mask: Tensor, view_proj: Tensor,
                 src_material: Tensor | None = None, src_object: Tensor | None = None,
@@ -106,8 +101,7 @@ class SplatTranslucency(nn.Module):
         Returns:
             :math:`(B, C, H, W)` radiosity (0 off the mask).
         """
-        sa, ss, eta = self.tables()
-        return splat_radiosity(src_pos, src_flux, dst_pos, dst_mask, view_proj, sa, ss, eta, self.r_max,
+        return splat_radiosity(src_pos, src_flux, dst_pos, dst_mask, view_proj, list(self.materials), self.r_max,
                                src_material=src_material, src_object=src_object, dst_object=dst_object,
                                src_distance_scale=src_distance_scale, src_irradiance_scale=src_irradiance_scale,
                                method=self.method, window=self.window)

@@ -35,6 +35,7 @@ profile; ``benchmarks/bench_splat.py`` measures them.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -46,9 +47,12 @@ from torchsss._checks import (
     check_shape,
     check_tensor,
     compute_dtype,
+    is_exporting,
     is_tracing,
 )
-from torchsss.physics.dipole import dipole_rd
+
+#: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
+Profile = Callable[[Tensor], Tensor]
 
 __all__ = ["splat_radiosity", "splat_window_size"]
 
@@ -88,15 +92,29 @@ def _check_modifier(x: object, name: str, dims: dict[str, int]) -> Tensor:
     return x
 
 
-def _material_table(x: object, name: str, c: int) -> Tensor:
-    check_tensor(x, name)
-    if x.dim() == 1:
-        x = x.unsqueeze(0)
-    if x.dim() != 2 or x.shape[-1] != c:
-        raise ValueError(
-            f"{name}: expected shape (M, C) or (C,) with C={c} (the channels of src_flux), got {tuple(x.shape)}"
-        )
-    return x
+def _profiles(profile: object) -> list[Profile]:
+    """The material table as a list of profile callables (one material: a list of one)."""
+    rows = list(profile) if isinstance(profile, (list, tuple)) else [profile]
+    if not rows:
+        raise ValueError("profile: expected a profile or a non-empty sequence of profiles, got an empty sequence")
+    for i, p in enumerate(rows):
+        if not callable(p):
+            name = "profile" if len(rows) == 1 and not isinstance(profile, (list, tuple)) else f"profile[{i}]"
+            raise TypeError(f"{name}: expected a callable from distances (mm) to R_d (a material module), "
+                            f"got {type(p).__name__}")
+    return rows
+
+
+def _check_profile_channels(profiles: list[Profile], c: int, like: Tensor) -> None:
+    """Every profile must give C channels (those of ``src_flux``): one evaluation at r = 1 mm each."""
+    probe = torch.ones(1, 1, dtype=like.dtype if like.is_floating_point() else torch.float32, device=like.device)
+    for i, p in enumerate(profiles):
+        with torch.no_grad():
+            got = p(probe)
+        if not isinstance(got, Tensor) or got.dim() < 1 or got.shape[-1] != c:
+            shape = tuple(got.shape) if isinstance(got, Tensor) else type(got).__name__
+            raise ValueError(f"profile[{i}]: expected R_d of shape (..., {c}) (the channels of src_flux) for "
+                             f"distances (..., 1), got {shape}")
 
 
 def _per_material(x: object, name: str, m: int, like: Tensor) -> Tensor:
@@ -231,19 +249,18 @@ def splat_window_size(src_pos: Tensor, view_proj: Tensor, radius: Tensor | float
 
 
 # -- shared pieces -----------------------------------------------------------------------------------------------------
-def _profile(
-    r: Tensor, valid: Tensor | None, md: Tensor | None, rmax: Tensor, sa: Tensor, ss: Tensor, eta: Tensor
-) -> Tensor:
+def _profile(r: Tensor, valid: Tensor | None, md: Tensor | None, rmax: Tensor, profile: Profile) -> Tensor:
     """Truncated, masked :math:`R_d(r M_d)`: zero where ``valid`` is False or :math:`r M_d > r_{max}`.
 
-    Channels first: ``r`` is :math:`(1, ...)`, the material :math:`(C, 1, ...)`, the result :math:`(C, ...)`, so
-    that the elementwise passes run over contiguous pairs rather than over a trailing dimension of 3.
+    Channels first: ``r`` is :math:`(1, ...)`, ``md`` :math:`(1 \\text{ or } C, ...)`, the result
+    :math:`(C, ...)`; the profile itself is called channels-last (the contract of every profile: distances
+    :math:`(..., 1 \\text{ or } C)` in mm to :math:`(..., C)`).
     """
     r_eff = r if md is None else r * md
     keep = r_eff <= rmax
     if valid is not None:
         keep = keep & valid
-    rd = dipole_rd(r_eff, sa, ss, eta)
+    rd = profile(r_eff.movedim(0, -1)).movedim(-1, 0).to(r.dtype)
     return torch.where(keep, rd, torch.zeros_like(rd))
 
 
@@ -256,16 +273,16 @@ def _sqrt0(x: Tensor) -> Tensor:
 def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict, mat: tuple, step: int) -> Tensor:
     """Add :math:`R_d(r)\\,E\\,dA` of a list of pairs to ``out`` :math:`(C, N)` (``index`` into its columns).
 
-    ``r`` are the pairs' distances (mm), ``splat`` their sources in ``src``; ``mat`` = (sigma_a (C, 1),
-    sigma_s_prime (C, 1), eta (1, 1), r_max (1, 1)) of the one material of ``src`` (the eager paths handle one
-    material at a time, so no per-pair material gather). The pairs are evaluated ``step`` at a time.
+    ``r`` are the pairs' distances (mm), ``splat`` their sources in ``src``; ``mat`` = (profile, r_max (1, 1)) of
+    the one material of ``src`` (the eager paths handle one material at a time, so no per-pair material gather).
+    The pairs are evaluated ``step`` at a time.
     """
     c = out.shape[0]
     for i in range(0, index.numel(), step):
         sl = slice(i, i + step)
         sp = splat[sl]
         md = None if src["md"] is None else src["md"][sp].T
-        rd = _profile(r[sl].unsqueeze(0), None, md, mat[3], mat[0], mat[1], mat[2])  # (C, P)
+        rd = _profile(r[sl].unsqueeze(0), None, md, mat[1], mat[0])  # (C, P)
         out = out.scatter_add(1, index[sl].expand(c, -1), rd * src["flux"][sp].T)
     return out
 
@@ -335,15 +352,13 @@ def _splat_window_traced(
     d = dst[:, pix] - src["pos"].T.unsqueeze(-1)  # (3, S, K)
     r = _sqrt0(d[0:1].square() + d[1:2].square() + d[2:3].square())  # (1, S, K)
     md = None if src["md"] is None else src["md"].T.unsqueeze(-1)
-    wgt = _profile(
-        r,
-        valid.unsqueeze(0),
-        md,
-        src["rmax"][None, :, None],
-        src["sa"].T.unsqueeze(-1),
-        src["ss"].T.unsqueeze(-1),
-        src["eta"][None, :, None],
-    )  # (C, S, K)
+    rmax = src["rmax"][None, :, None]
+    profiles = src["profiles"]
+    if len(profiles) == 1:
+        wgt = _profile(r, valid.unsqueeze(0), md, rmax, profiles[0])  # (C, S, K)
+    else:  # one evaluation per row of the material table, each kept on the splats of that row
+        row = src["mat"][None, :, None]
+        wgt = sum(_profile(r, valid.unsqueeze(0) & (row == k), md, rmax, p) for k, p in enumerate(profiles))
     contrib = (wgt * src["flux"].T.unsqueeze(-1)).reshape(c, -1)
     out = torch.zeros(c, b * h * w, dtype=dst.dtype, device=dst.device)
     return out.scatter_add(1, pix.reshape(1, -1).expand(c, -1), contrib)
@@ -479,8 +494,7 @@ def _tile_block(tiles: _Tiles, idx: Tensor, cand: Tensor, ok: Tensor, src: dict,
     if tiles.obj is not None:
         valid = valid & (tiles.obj[idx].unsqueeze(-1) == src["obj"][cand].unsqueeze(1))
     md = None if src["md"] is None else src["md"][cand].permute(2, 0, 1).unsqueeze(2)  # (1|C, ntc, 1, L)
-    sa, ss, eta, rmax = (x.reshape(-1, 1, 1, 1) for x in mat)
-    rd = _profile(r.unsqueeze(0), valid.unsqueeze(0), md, rmax, sa, ss, eta)  # (C, ntc, T2, L)
+    rd = _profile(r.unsqueeze(0), valid.unsqueeze(0), md, mat[1].reshape(1, 1, 1, 1), mat[0])  # (C, ntc, T2, L)
     flux = src["flux"][cand].permute(2, 0, 1).unsqueeze(2)  # (C, ntc, 1, L)
     return (rd * flux).sum(-1)
 
@@ -545,9 +559,7 @@ def splat_radiosity(
     dst_pos: Tensor,
     dst_mask: Tensor,
     view_proj: Tensor,
-    sigma_a: Tensor,
-    sigma_s_prime: Tensor,
-    eta: Tensor | float,
+    profile: Profile | Sequence[Profile],
     r_max: Tensor | float,
     *,
     src_material: Tensor | None = None,
@@ -590,8 +602,9 @@ def splat_radiosity(
     temporaries stay below about ``max_memory_mb``. While tracing/exporting, the window path is one dense chunk
     (:math:`S K^2` taps) with per-splat material rows, and the data-dependent checks are skipped.
 
-    Differentiable with respect to ``src_flux``, the material tables ``sigma_a``, ``sigma_s_prime``, ``eta`` and
-    the modifiers (the truncation is a step: ``r_max`` gets no gradient). Gradients also reach the positions
+    Differentiable with respect to ``src_flux``, the parameters the profiles close over (a material module's
+    :math:`\\sigma_a`, :math:`\\sigma_s'`, ...) and the modifiers (the truncation is a step: ``r_max`` gets no
+    gradient). Gradients also reach the positions
     through the distances (the truncation edge and the window placement contribute none).
 
     Args:
@@ -603,11 +616,12 @@ def splat_radiosity(
         view_proj: :math:`(4, 4)` or :math:`(B, 4, 4)` world-to-clip matrix of the camera that produced
             ``dst_pos`` (OpenGL conventions, row 0 at the top, :mod:`torchsss.geometry.camera`); used by the
             window path only.
-        sigma_a: :math:`(M, C)` (or :math:`(C,)` for one material) absorption coefficients in mm^-1.
-        sigma_s_prime: :math:`(M, C)` (or :math:`(C,)`) reduced scattering coefficients in mm^-1.
-        eta: relative index of refraction per material, a number, :math:`()` or :math:`(M,)`.
+        profile: the material table: one profile, or a sequence of :math:`M` of them, each a callable from
+            distances :math:`(..., 1)` or :math:`(..., C)` in mm to :math:`R_d` :math:`(..., C)` in mm^-2 (a
+            material module such as :class:`~torchsss.DipoleMaterial`, :class:`~torchsss.BurleyMaterial`,
+            :class:`~torchsss.modules.TabulatedMaterial`, or ``functools.partial(dipole_rd, sigma_a=..., ...)``).
         r_max: truncation radius per material in mm (> 0), a number, :math:`()` or :math:`(M,)`, e.g.
-            ``torchsss.physics.r_max(sa, ss, eta, eps).amax(-1)``.
+            ``material.r_max(eps).amax()``.
         src_material: :math:`(B, S)` integer row of the material table of each source, in ``[0, M)``; required
             when :math:`M > 1`.
         src_object: :math:`(B, S)` integer object id of each source; give both ids or neither.
@@ -633,21 +647,21 @@ def splat_radiosity(
             ``window``, ``"tile"`` or ``window=None`` while tracing/exporting.
 
     Examples:
-        >>> from torchsss.physics import preset
-        >>> sa, ss, eta = preset("skin1").tensors(torch.float32)
+        >>> from torchsss.modules import DipoleMaterial
+        >>> skin = DipoleMaterial.from_preset("skin1")
         >>> ys, xs = torch.meshgrid(torch.linspace(-3.5, 3.5, 8), torch.linspace(-3.5, 3.5, 8), indexing="ij")
         >>> dst = torch.stack([xs, -ys, torch.zeros_like(xs)])[None]           # a plane z = 0, 1 mm pixels
         >>> vp = torch.diag(torch.tensor([0.25, 0.25, 1.0, 1.0]))              # orthographic, 8 mm wide
         >>> src = torch.tensor([[[0.0, 0.0, 0.0]]])
         >>> out = splat_radiosity(src, torch.ones(1, 1, 3), dst, torch.ones(1, 1, 8, 8, dtype=torch.bool), vp,
-        ...                       sa, ss, eta, r_max=2.0, method="window")
+        ...                       skin, r_max=2.0, method="window")
         >>> out.shape, bool((out[0, :, 0, 0] == 0).all()), bool((out[0, :, 3, 3] > 0).all())  # corner beyond r_max
         (torch.Size([1, 3, 8, 8]), True, True)
         >>> torch.allclose(out, splat_radiosity(src, torch.ones(1, 1, 3), dst, torch.ones(1, 1, 8, 8,
-        ...                dtype=torch.bool), vp, sa, ss, eta, r_max=2.0, method="tile"))
+        ...                dtype=torch.bool), vp, skin, r_max=2.0, method="tile"))
         True
     """
-    tracing = is_tracing()
+    tracing = is_exporting()  # under plain torch.compile the eager path runs (dynamo breaks the graph)
     # -- validation --
     for name, t in (("src_pos", src_pos), ("src_flux", src_flux), ("dst_pos", dst_pos)):
         check_tensor(t, name)
@@ -662,13 +676,9 @@ def splat_radiosity(
         raise TypeError(f"dst_mask: expected a bool tensor, got {got}")
     _shape(dst_mask, "dst_mask", "B,1,H,W", **dims)
     vp = _check_view_proj(view_proj, b)
-    sa = _material_table(sigma_a, "sigma_a", c)
-    ss = _material_table(sigma_s_prime, "sigma_s_prime", c)
-    m = sa.shape[0]
-    if ss.shape[0] != m:
-        raise ValueError(f"sigma_s_prime: expected shape ({m}, {c}) (as sigma_a), got {tuple(sigma_s_prime.shape)}")
-    et = _per_material(eta, "eta", m, sa)
-    rm = _per_material(r_max, "r_max", m, sa)
+    profiles = _profiles(profile)
+    m = len(profiles)
+    rm = _per_material(r_max, "r_max", m, src_flux)
     if not isinstance(method, str):
         raise TypeError(f"method: expected a str, got {type(method).__name__}")
     if method not in _METHODS:
@@ -712,9 +722,7 @@ def splat_radiosity(
             "would be frozen into the graph), got None"
         )
     if not tracing:
-        check_nonnegative(sa, "sigma_a")
-        check_nonnegative(ss, "sigma_s_prime")
-        check_positive(et, "eta")
+        _check_profile_channels(profiles, c, src_flux)
         check_positive(rm, "r_max")
         if md is not None:
             check_positive(md, "src_distance_scale")
@@ -732,14 +740,14 @@ def splat_radiosity(
                     f"got {lo if lo < 0 else hi}"
                 )
 
-    tensors = [src_pos, src_flux, dst_pos, sa, ss, et, rm] + [x for x in (md, mi) if x is not None]
+    tensors = [src_pos, src_flux, dst_pos, rm] + [x for x in (md, mi) if x is not None]
     out_dtype, dtype = compute_dtype(*tensors)
     if h * w == 0 or b == 0:
         return torch.zeros(b, c, h, w, dtype=out_dtype, device=dst_pos.device)
 
     # -- flat per-splat arrays (rows sorted by batch element) --
     n = b * s
-    sa, ss, et, rm = (x.to(dtype) for x in (sa, ss, et, rm))
+    rm = rm.to(dtype)
     mat = (
         torch.zeros(n, dtype=torch.int64, device=src_pos.device)
         if src_material is None
@@ -764,7 +772,7 @@ def splat_radiosity(
     dst_obj = None if dst_object is None else dst_object.reshape(b * h * w)
 
     if tracing:
-        src.update(sa=sa[mat], ss=ss[mat], eta=et[mat], rmax=rm[mat])
+        src.update(profiles=profiles, mat=mat, rmax=rm[mat])
         dst_flat = dst.permute(1, 0, 2, 3).reshape(3, b * h * w)
         out = _splat_window_traced(src, dst_flat, mask_flat, dst_obj, vp.to(dtype), b, h, w, window)
         return out.reshape(c, b, h, w).transpose(0, 1).contiguous().to(out_dtype)
@@ -789,7 +797,7 @@ def splat_radiosity(
         tiles = [_Tiles(grid[i], dst_mask[i, 0], None if obj is None else obj[i], tile_size) for i in range(b)]
     for k in torch.unique(mat).tolist() if m > 1 else ([0] if mat.numel() else []):
         sub = src if m == 1 else _take(src, torch.nonzero(mat == k).squeeze(-1))
-        row = (sa[k].unsqueeze(-1), ss[k].unsqueeze(-1), et[k].reshape(1, 1), rm[k].reshape(1, 1))
+        row = (profiles[k], rm[k].reshape(1, 1))
         if method == "window":
             out = _splat_window(out, sub, row, dst_flat, mask_flat, dst_obj, vp.to(dtype), h, w, window, budget)
         else:

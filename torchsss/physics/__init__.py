@@ -13,7 +13,7 @@ from torchsss.physics.budget import (
     splat_overlap,
     splat_spacing,
 )
-from torchsss.physics.burley import burley_params_from_dipole, burley_rd
+from torchsss.physics.burley import burley_cumulative, burley_params_from_dipole, burley_r_max, burley_rd
 from torchsss.physics.dipole import (
     DipoleTerms,
     dipole_cumulative,
@@ -36,17 +36,21 @@ from torchsss.physics.fresnel import (
     transmittance,
 )
 from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table, profile_table_error
-from torchsss.physics.materials import MaterialPreset, preset, preset_names
+from torchsss.physics.materials import PROFILES, Material, MaterialPreset, preset, preset_names
 from torchsss.physics.sh import SH_COEFFS, fresnel_cosine_zonal, project_sh, sh_basis, sh_irradiance, sphere_quadrature
 
 __all__ = [
     "FRESNEL_MODES",
+    "PROFILES",
     "SH_COEFFS",
     "DipoleTerms",
+    "Material",
     "MaterialPreset",
     "ProfileTable",
     "build_profile_table",
+    "burley_cumulative",
     "burley_params_from_dipole",
+    "burley_r_max",
     "burley_rd",
     "chang_rp",
     "chang_weights",

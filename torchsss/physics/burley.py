@@ -17,7 +17,7 @@ from torch import Tensor
 from torchsss._checks import as_float_tensor, check_broadcastable, check_nonnegative, check_positive, compute_dtype
 from torchsss.physics.dipole import total_diffuse_reflectance
 
-__all__ = ["BURLEY_R_FLOOR", "burley_params_from_dipole", "burley_rd"]
+__all__ = ["BURLEY_R_FLOOR", "burley_cumulative", "burley_params_from_dipole", "burley_r_max", "burley_rd"]
 
 #: The profile is singular (1/r) at r = 0; distances are clamped to ``BURLEY_R_FLOOR / s`` so that a
 #: receiver that coincides with a source gets a large finite value instead of inf (the integral is unaffected).
@@ -95,3 +95,49 @@ def burley_params_from_dipole(
     a = total_diffuse_reflectance(sa, ss, eta)
     fit = 1.85 - a + 7.0 * (a - 0.8).abs() ** 3
     return a, (sa + ss) * fit
+
+
+def burley_cumulative(radius: Tensor | float, albedo: Tensor | float, s: Tensor | float) -> Tensor:
+    """Closed-form :math:`\\int_0^R R(r)\\,2\\pi r\\,dr` of Burley's profile: the reflectance within radius ``R`` (mm).
+
+    .. math:: \\frac{A}{4}\\left[(1 - e^{-sR}) + 3\\,(1 - e^{-sR/3})\\right]
+
+    It tends to the albedo :math:`A` as :math:`R \\to \\infty`. Shapes broadcast; differentiable.
+
+    Examples:
+        >>> round(burley_cumulative(float("inf"), 0.8, 2.0).item(), 6)
+        0.8
+    """
+    r_t = as_float_tensor(radius, "radius")
+    a_t = as_float_tensor(albedo, "albedo", like=r_t)
+    s_t = as_float_tensor(s, "s", like=r_t)
+    check_nonnegative(r_t, "radius", allow_inf=True)
+    check_positive(s_t, "s")
+    out_dtype, work = compute_dtype(r_t, a_t, s_t)
+    sr = s_t.to(work) * r_t.to(work)
+    return (a_t.to(work) * 0.25 * (-torch.expm1(-sr) - 3.0 * torch.expm1(-sr / 3.0))).to(out_dtype)
+
+
+def burley_r_max(s: Tensor | float, eps: float = 0.01) -> Tensor:
+    """Radius (mm) beyond which Burley's profile holds a fraction ``eps`` of its energy (Shah eq. 6.16's r_max).
+
+    The tail fraction :math:`(e^{-sR} + 3 e^{-sR/3})/4` is solved for :math:`\\epsilon` by bisection in float64
+    (it does not depend on the albedo). No gradient.
+
+    Examples:
+        >>> round(burley_r_max(torch.tensor([1.0]), 0.01).item(), 4)
+        12.9526
+    """
+    s_t = as_float_tensor(s, "s")
+    check_positive(s_t, "s")
+    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 < float(eps) < 1.0:
+        raise ValueError(f"eps: expected a number in (0, 1), got {eps!r}")
+    lo = torch.zeros(s_t.shape, dtype=torch.float64)
+    hi = torch.full(s_t.shape, 3.0 * math.log(1.0 / float(eps)) + 1.0, dtype=torch.float64)  # x = s R
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        tail = 0.25 * (torch.exp(-mid) + 3.0 * torch.exp(-mid / 3.0))
+        big = tail > eps
+        lo = torch.where(big, mid, lo)
+        hi = torch.where(big, hi, mid)
+    return (hi.to(s_t.device) / s_t.detach().to(torch.float64)).to(s_t.dtype)

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from torchsss._checks import as_float_tensor, check_positive, check_tensor
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, transmittance
 
 __all__ = [
     "SH_COEFFS",
@@ -57,13 +57,6 @@ _C20 = 0.25 * math.sqrt(5.0 / math.pi)
 _C22 = 0.25 * math.sqrt(15.0 / math.pi)
 _BAND = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # band l of each coefficient
 _ZONAL_NODES = 64  # Gauss-Legendre nodes of fresnel_cosine_zonal
-_FRESNEL = ("exact", "schlick", "none")
-
-
-def _check_fresnel(fresnel: object) -> str:
-    if not isinstance(fresnel, str) or fresnel not in _FRESNEL:
-        raise ValueError(f"fresnel: expected one of {_FRESNEL}, got {fresnel!r}")
-    return fresnel
 
 
 def sh_basis(directions: Tensor) -> Tensor:
@@ -131,7 +124,7 @@ def fresnel_cosine_zonal(eta: Tensor | float, fresnel: str = "exact") -> Tensor:
         >>> [round(v, 4) for v in fresnel_cosine_zonal(1.3).tolist()]
         [2.9495, 2.0204, 0.8192]
     """
-    fresnel = _check_fresnel(fresnel)
+    fresnel = check_fresnel(fresnel)
     eta_t = as_float_tensor(eta, "eta")
     check_positive(eta_t, "eta")
     dtype = torch.float32 if eta_t.dtype in (torch.float16, torch.bfloat16) else eta_t.dtype
@@ -144,12 +137,7 @@ def fresnel_cosine_zonal(eta: Tensor | float, fresnel: str = "exact") -> Tensor:
     span = (1.0 - mu_c)[..., None]
     mu = mu_c[..., None] + span * s * s  # (..., Q)
     jac = 2.0 * span * s
-    if fresnel == "exact":
-        ft = fresnel_transmittance(mu, e[..., None])
-    elif fresnel == "schlick":
-        ft = schlick_transmittance(mu, e[..., None])
-    else:
-        ft = torch.ones_like(mu)
+    ft = transmittance(mu, e[..., None], fresnel)
     integrand = (w * jac * ft * mu)[..., None] * _legendre(mu)  # (..., Q, 3)
     return (2.0 * math.pi) * integrand.sum(-2).to(eta_t.dtype)
 

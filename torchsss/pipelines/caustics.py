@@ -8,14 +8,15 @@ the caustic irradiance.
 
 Conventions and choices:
 
-- **Light camera.** Fitted to the refractor's bounding sphere (centre c, radius r): an orthographic box along a
-  directional light of half-size ``margin * r`` (``margin`` > 1 leaves room for light bent outside the
-  refractor's silhouette), or a perspective frustum from a point light towards c with the half-angle
-  :math:`\\arcsin(\\min(1, margin\\, r / d))` (capped at 80 degrees). Near and far enclose every vertex of both
-  meshes along the line of sight (a point light's near plane stays at 0.5 times the distance of the refractor's
-  nearest point; receiver parts closer than that to the light are clipped). The camera's up is +y (+z when the
-  light runs along y).
-- **Back layer.** The refractor is rasterized a second time with its clip-space z negated, so that the z-buffer
+- **Light camera.** :func:`~torchsss.geometry.shadow.light_camera` fitted to the refractor's bounding sphere (centre
+  c, radius r): an orthographic box along a directional light of half-size ``margin * r`` (``margin`` > 1 leaves
+  room for light bent outside the refractor's silhouette), or a perspective frustum from a point light towards c
+  with the half-angle :math:`\\arcsin(\\min(1, margin\\, r / d))` (capped at 80 degrees). Near and far enclose
+  every vertex of both meshes along the line of sight (a point light's near plane stays at 0.5 times the distance
+  of the refractor's bounding sphere; receiver parts closer than that to the light are clipped). The camera's up
+  is +y (+z when the light runs within 26 degrees of the y axis), the rule of the shadow-map cameras.
+- **Back layer.** The refractor is rasterized a second time (:func:`~torchsss.geometry.gbuffer.layer_gbuffer`,
+  ``farthest=True``) with its clip-space z negated, so that the z-buffer
   keeps the *farthest* surface along every light ray (the clip volume's z range is symmetric, and the
   perspective-correct barycentrics depend on x, y, w only). This needs no consistent face winding (the decimated
   bunny's winding is not guaranteed) and is exactly "the farthest layer" that Wyman's double-surface refraction
@@ -51,10 +52,10 @@ from torch import Tensor
 
 from torchsss._checks import check_int
 from torchsss.geometry.camera import Camera, transform_points
+from torchsss.geometry.gbuffer import layer_gbuffer
 from torchsss.geometry.lights import DirectionalLight, PointLight
 from torchsss.geometry.mesh import Mesh
-from torchsss.geometry.raster import interpolate, rasterize
-from torchsss.geometry.shadow import bounding_sphere, build_shadow_map, shadow_visibility
+from torchsss.geometry.shadow import bounding_sphere, build_shadow_map, light_camera, shadow_visibility
 from torchsss.modules.caustics import CausticMap
 from torchsss.physics.fresnel import fresnel_reflectance
 
@@ -153,15 +154,13 @@ def _check_number(value: object, name: str, minimum: float, inclusive: bool = Fa
 
 
 # -- light camera and G-buffers ----------------------------------------------------------------------------------
-def _along(points: Tensor, origin: Sequence[float], axis: Sequence[float]) -> Tensor:
-    o = torch.tensor(origin, dtype=torch.float64)
-    a = torch.tensor(axis, dtype=torch.float64)
-    return (points.detach().double().cpu() - o) @ a
-
-
 def caustic_light_camera(refractor: Mesh, receiver: Mesh, light: DirectionalLight | PointLight, resolution: int,
                          margin: float = 1.5) -> Camera:
     """The light camera of :func:`caustic_gbuffers` (see the module docstring).
+
+    :func:`~torchsss.geometry.shadow.light_camera` on the refractor's bounding sphere with a half-extent of
+    ``margin`` times its radius, near and far around every vertex of both meshes, the half angle capped at 80
+    degrees and a point light's near plane at half the distance to the bounding sphere.
 
     Raises:
         TypeError, ValueError: bad arguments; a point light inside the refractor's bounding sphere.
@@ -180,41 +179,9 @@ def caustic_light_camera(refractor: Mesh, receiver: Mesh, light: DirectionalLigh
     centre, radius = bounding_sphere(refractor)
     if not radius > 0:
         raise ValueError(f"refractor: expected a mesh of non-zero extent, got bounding radius {radius}")
-    allv = torch.cat([refractor.vertices.detach().double().cpu(), receiver.vertices.detach().double().cpu()])
-    if isinstance(light, DirectionalLight):
-        d = light.direction
-        up = (0.0, 0.0, 1.0) if abs(d[1]) > 0.9 else (0.0, 1.0, 0.0)
-        eye = tuple(c - 2.0 * radius * di for c, di in zip(centre, d))
-        depth = _along(allv, eye, d)
-        pad = 0.01 * radius + 1e-3
-        return Camera(eye=eye, target=tuple(centre), up=up, width=resolution, height=resolution,
-                      near=float(depth.min()) - pad, far=float(depth.max()) + pad, projection="orthographic",
-                      ortho_half_height=margin * radius)
-    offset = tuple(c - p for c, p in zip(centre, light.position))
-    dist = math.sqrt(sum(o * o for o in offset))
-    if dist <= 1.01 * radius:
-        raise ValueError(f"light: expected a point light outside the refractor's bounding sphere (radius "
-                         f"{radius:.3f} mm), got distance {dist:.3f} mm")
-    axis = tuple(o / dist for o in offset)
-    half = min(math.degrees(math.asin(min(1.0, margin * radius / dist))), _MAX_HALF_ANGLE_DEG)
-    depth = _along(allv, light.position, axis)
-    near = 0.5 * (dist - radius)
-    far = max(float(depth.max()), dist + radius) * 1.01 + 1e-3
-    up = (0.0, 0.0, 1.0) if abs(axis[1]) > 0.9 else (0.0, 1.0, 0.0)
-    return Camera(eye=tuple(light.position), target=tuple(centre), up=up, fov_deg=2.0 * half, width=resolution,
-                  height=resolution, near=near, far=far)
-
-
-def _layer(mesh: Mesh, vp: Tensor, resolution: int, farthest: bool) -> tuple[Tensor, Tensor, Tensor]:
-    clip = transform_points(mesh.vertices, vp)
-    if farthest:
-        clip = clip * torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=clip.dtype, device=clip.device)
-    raster = rasterize(clip, mesh.faces, (resolution, resolution))
-    mask = raster.mask
-    pos = interpolate(mesh.vertices, raster, mesh.faces)
-    pos = torch.where(mask, pos, torch.full_like(pos, float("nan")))
-    nrm = F.normalize(interpolate(mesh.vertex_normals, raster, mesh.faces), dim=1, eps=1e-12) * mask
-    return pos, nrm, mask
+    points = torch.cat([refractor.vertices.detach().double().cpu(), receiver.vertices.detach().double().cpu()])
+    return light_camera(light, centre, radius, resolution, margin=margin, points=points,
+                        max_half_angle_deg=_MAX_HALF_ANGLE_DEG, near_fraction=0.5)
 
 
 def caustic_gbuffers(refractor: Mesh, receiver: Mesh, light: DirectionalLight | PointLight, resolution: int = 256,
@@ -251,11 +218,11 @@ def caustic_gbuffers(refractor: Mesh, receiver: Mesh, light: DirectionalLight | 
     cam = caustic_light_camera(refractor, receiver, light, resolution, margin)
     dtype, device = refractor.vertices.dtype, refractor.vertices.device
     vp = cam.view_proj(dtype=dtype, device=device)
-    fp, fn, fm = _layer(refractor, vp, resolution, farthest=False)
-    bp, bn, bm = _layer(refractor, vp, resolution, farthest=True)
+    fp, fn, fm, *_ = layer_gbuffer(refractor, vp, resolution)
+    bp, bn, bm, *_ = layer_gbuffer(refractor, vp, resolution, farthest=True)
     rec = receiver.with_dtype(dtype).with_device(device) if receiver.vertices.dtype != dtype or \
         receiver.vertices.device != device else receiver
-    rp, rn, rm = _layer(rec, vp, map_resolution, farthest=False)
+    rp, rn, rm, *_ = layer_gbuffer(rec, vp, map_resolution)
     if isinstance(light, DirectionalLight):
         lt = torch.tensor([[-c for c in light.direction] + [0.0]], dtype=dtype, device=device)
         inten = torch.tensor([light.irradiance], dtype=dtype, device=device)
@@ -340,14 +307,6 @@ def _sample_light_view(image: Tensor, points: Tensor, view_proj: Tensor) -> Tens
 
 
 # -- render ------------------------------------------------------------------------------------------------------------
-def _camera_layer(mesh: Mesh, vp: Tensor, res: tuple[int, int]):
-    clip = transform_points(mesh.vertices, vp)
-    raster = rasterize(clip, mesh.faces, res)
-    pos = interpolate(mesh.vertices, raster, mesh.faces)
-    nrm = F.normalize(interpolate(mesh.vertex_normals, raster, mesh.faces), dim=1, eps=1e-12)
-    return pos, nrm, raster.mask, raster.depth
-
-
 def _rgb(value: object, name: str, dtype: torch.dtype, device: torch.device) -> Tensor:
     if isinstance(value, bool):
         raise TypeError(f"{name}: expected a number or 3 numbers, got bool")
@@ -433,8 +392,8 @@ def render_caustics(
     t0 = time.perf_counter()
     vp_cam = camera.view_proj(dtype=dtype, device=device)
     res = camera.resolution
-    r_pos, r_nrm, r_mask, r_depth = _camera_layer(receiver, vp_cam, res)
-    f_pos, f_nrm, f_mask, f_depth = _camera_layer(refractor, vp_cam, res)
+    r_pos, r_nrm, r_mask, r_depth, *_ = layer_gbuffer(receiver, vp_cam, res, fill=0.0)
+    f_pos, f_nrm, f_mask, f_depth, *_ = layer_gbuffer(refractor, vp_cam, res, fill=0.0)
     rec_vis = r_mask & (~f_mask | (r_depth < f_depth))
     ref_vis = f_mask & ~rec_vis
     pts = r_pos.flatten(2).transpose(1, 2)

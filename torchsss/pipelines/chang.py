@@ -13,28 +13,31 @@ piecewise constant per texel); its noise falls like :math:`1/\\sqrt{N}`.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
 from torchsss.geometry.atlas import Atlas, build_atlas
+from torchsss.geometry.atlas_frame import camera_uv, irradiance_atlas
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
-from torchsss.modules.lensch import LenschTranslucency
-from torchsss.modules.material import DipoleMaterial
+from torchsss.modules.material import material_module
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS
-from torchsss.pipelines.lensch import _camera_uv, irradiance_atlas
-from torchsss.pipelines.reference import RenderResult
+from torchsss.physics.fresnel import exit_radiance
+from torchsss.physics.materials import Material
+from torchsss.pipelines.renderer import Renderer, RenderResult
 from torchsss.pipelines.specular import shadow_mapped_specular
-from torchsss.scene import Material
 
-__all__ = ["ChangScene", "build_hybrid", "build_icdf", "render_hybrid", "render_icdf", "sample_uniforms"]
+__all__ = ["ChangScene", "HybridRenderer", "IcdfRenderer", "build_hybrid", "build_icdf", "profile_rp",
+           "render_hybrid", "render_icdf", "sample_uniforms"]
 
 
 @dataclass
@@ -72,115 +75,183 @@ def sample_uniforms(n: int, *, seed: int = 0, sobol: bool = True, dtype: torch.d
     return u.unsqueeze(0).to(device)
 
 
-def _check_dtype(dtype: object) -> None:
-    if dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
+def profile_rp(profile: nn.Module, c: float = 0.1, grid: int = 2048) -> float:
+    """Chang's split radius :math:`R_p` of any profile: the largest r with :math:`\\max_c R_d(r)\\,2\\pi r \\ge c`.
+
+    :func:`torchsss.physics.chang_rp` in closed form for the dipole; for any module of the profile contract the
+    importance is evaluated on a log grid up to the module's ``r_max(1e-6)`` and the last crossing is bisected.
+    0 where the importance never reaches ``c`` (everything global).
+
+    Examples:
+        >>> from torchsss.modules import BurleyMaterial
+        >>> round(profile_rp(BurleyMaterial.from_preset("skin1"), 0.1), 2) > 0
+        True
+    """
+    if isinstance(c, bool) or not isinstance(c, (int, float)) or not c > 0:
+        raise ValueError(f"c: expected a number > 0, got {c!r}")
+    hi = float(profile.r_max(1e-6).max())
+    lo = hi * 1e-7
+
+    def importance(r: Tensor) -> Tensor:
+        with torch.no_grad():
+            return 2.0 * math.pi * r[:, 0] * profile(r).detach().to(torch.float64).amax(-1)
+
+    dev = profile.eta.device
+    rs = torch.logspace(math.log10(lo), math.log10(hi), grid, dtype=torch.float64, device=dev).unsqueeze(-1)
+    above = torch.nonzero(importance(rs) >= c).flatten()
+    if above.numel() == 0:
+        return 0.0
+    i = int(above[-1])
+    if i == grid - 1:
+        return hi
+    a, b = float(rs[i]), float(rs[i + 1])
+    for _ in range(60):
+        m = 0.5 * (a + b)
+        if float(importance(torch.tensor([[m]], dtype=torch.float64, device=dev))[0]) >= c:
+            a = m
+        else:
+            b = m
+    return a
 
 
-def build_icdf(mesh: Mesh, material: Material, *, atlas_resolution: int = 512, kernel_size: int = 7,
+def build_icdf(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: int = 512, kernel_size: int = 7,
                levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False) -> ChangScene:
     """Atlas + :class:`~torchsss.modules.chang.ImportanceSampledTranslucency` for ``mesh`` in ``material``."""
     t0 = time.perf_counter()
+    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
     atlas = build_atlas(mesh, atlas_resolution, kernel_size=kernel_size, progress=progress)
     t1 = time.perf_counter()
-    sa, ss, eta = material.tensors(dtype=mesh.vertices.dtype)
-    module = ImportanceSampledTranslucency.from_atlas(atlas, DipoleMaterial(sa, ss, eta), levels=levels,
-                                                      max_pairs=max_pairs)
+    module = ImportanceSampledTranslucency.from_atlas(atlas, mat, levels=levels, max_pairs=max_pairs)
     stats = dict(t_atlas_s=t1 - t0, t_precompute_s=time.perf_counter() - t0)
     return ChangScene(mesh, atlas, module, stats)
 
 
-def build_hybrid(mesh: Mesh, material: Material, *, atlas_resolution: int = 512, kernel_size: int = 7,
+def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: int = 512, kernel_size: int = 7,
                  rings: int = 4, per_ring: int = 8, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
                  levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False) -> ChangScene:
     """Atlas + :class:`HybridTranslucency` for ``mesh`` in ``material``.
 
     ``kernel_size`` sets the atlas gutters (``kernel_size // 2`` texels) that the local filter reads across chart
-    edges (wider gutters need a larger ``atlas_resolution``).
+    edges (wider gutters need a larger ``atlas_resolution``). The split radius is Chang's closed form for a
+    dipole and :func:`profile_rp` for other profiles.
     """
     t0 = time.perf_counter()
+    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
     atlas = build_atlas(mesh, atlas_resolution, kernel_size=kernel_size, progress=progress)
     t1 = time.perf_counter()
-    sa, ss, eta = material.tensors(dtype=mesh.vertices.dtype)
-    module = HybridTranslucency.from_atlas(atlas, DipoleMaterial(sa, ss, eta), c=c, k=k, rings=rings,
-                                           per_ring=per_ring, local_eps=local_eps, levels=levels, max_pairs=max_pairs)
+    split = {} if hasattr(mat, "sigma_s_prime") else {"r_p": profile_rp(mat, c)}
+    module = HybridTranslucency.from_atlas(atlas, mat, c=c, k=k, rings=rings, per_ring=per_ring,
+                                           local_eps=local_eps, levels=levels, max_pairs=max_pairs, **split)
     stats = dict(t_atlas_s=t1 - t0, t_precompute_s=time.perf_counter() - t0, r_p_mm=module.r_p,
                  local_bound_mm=module.bound, rings=rings, per_ring=per_ring)
     return ChangScene(mesh, atlas, module, stats)
 
 
-def _render(built: ChangScene, mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *,
-            samples: int, seed: int, sobol: bool, specular: bool, roughness: float, hybrid: bool,
-            shadow_resolution: int) -> RenderResult:
-    lights = list(lights)
-    if not lights:
-        raise ValueError("lights: expected at least one light, got none")
-    gbuf = camera_gbuffer(mesh, camera)
-    dtype, device = mesh.vertices.dtype, mesh.vertices.device
-    t0 = time.perf_counter()
-    e = irradiance_atlas(mesh, built.atlas, lights, material.eta, shadow_resolution=shadow_resolution).to(dtype)
-    t1 = time.perf_counter()
-    u = sample_uniforms(samples, seed=seed, sobol=sobol, dtype=dtype, device=device)
-    mask = gbuf.mask[0, 0]
-    receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
-    with torch.no_grad():
-        if hybrid:
-            uv, _ = _camera_uv(mesh, built.atlas, camera)
+class IcdfRenderer(Renderer):
+    """Chang et al.'s texture-space importance sampling (module docstring): atlas once, ``samples`` per frame.
+
+    Knobs:
+        samples: importance samples N per frame (error ~ 1/sqrt(N)).
+        atlas_resolution: texture atlas size (texels).
+        seed: seed of the scrambled Sobol (or pseudo-random) uniforms.
+        sobol: scrambled Sobol uniforms (True) or pseudo-random ones.
+        levels: pyramid depth of the sampler (None: from the atlas size).
+        max_pairs: pair budget of one chunk of the gather-sum.
+        shadow_resolution: size of each light's shadow map for the irradiance atlas.
+        specular: add the shadow-mapped GGX boundary reflection.
+        roughness: GGX alpha of ``specular``.
+    """
+
+    method = "icdf"
+    hybrid = False
+    defaults: ClassVar[dict] = dict(samples=4096, atlas_resolution=512, seed=0, sobol=True, levels=None,
+                                    max_pairs=DEFAULT_MAX_PAIRS, shadow_resolution=1024, specular=False,
+                                    roughness=0.3)
+
+    def _build(self) -> None:
+        k = self.knobs
+        self.built = build_icdf(self.mesh, self.material, atlas_resolution=k["atlas_resolution"], levels=k["levels"],
+                                max_pairs=k["max_pairs"], progress=self.progress)
+        self.atlas, self.module = self.built.atlas, self.built.module
+
+    def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
+        k, mesh, eta = self.knobs, self.mesh, self.eta
+        gbuf = camera_gbuffer(mesh, camera)
+        dtype, device = mesh.vertices.dtype, mesh.vertices.device
+        t0 = time.perf_counter()
+        e = irradiance_atlas(mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"]).to(dtype)
+        t1 = time.perf_counter()
+        u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
+        mask = gbuf.mask[0, 0]
+        receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
+        if self.hybrid:
+            uv, _ = camera_uv(mesh, self.atlas, camera)
             rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
-            b = built.module(e, u, receivers, rec_uv)
+            b = self.module(e, u, receivers, rec_uv)
         else:
-            b = built.module(e, u, receivers)
-    t2 = time.perf_counter()
-    h, w = camera.resolution
-    radiosity = torch.zeros(h, w, b.shape[-1], dtype=dtype, device=device)
-    radiosity[mask] = b[0].to(dtype)
-    radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
-    radiance = LenschTranslucency.radiance(radiosity, cos_o, material.eta) * gbuf.mask
-    if specular:
-        radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, material.eta, roughness=roughness)
-    t3 = time.perf_counter()
-    stats = dict(built.stats)
-    stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=t3 - t2, t_frame_s=t3 - t0,
-                 atlas_resolution=built.atlas.resolution, samples=samples, receivers=int(receivers.shape[1]),
-                 sobol=sobol, seed=seed)
-    return RenderResult(radiance, radiosity, gbuf.mask, stats)
+            b = self.module(e, u, receivers)
+        t2 = time.perf_counter()
+        h, w = camera.resolution
+        radiosity = torch.zeros(h, w, b.shape[-1], dtype=b.dtype, device=device)
+        radiosity[mask] = b[0]
+        radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
+        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        radiance = exit_radiance(radiosity, cos_o, eta) * gbuf.mask
+        if k["specular"]:
+            radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])
+        stats = dict(self.built.stats)
+        stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=time.perf_counter() - t2,
+                     atlas_resolution=self.atlas.resolution, samples=k["samples"],
+                     receivers=int(receivers.shape[1]), sobol=k["sobol"], seed=k["seed"])
+        return RenderResult(radiance, radiosity, gbuf.mask, stats)
 
 
-def render_icdf(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *, samples: int = 1024,
-                atlas_resolution: int = 512, seed: int = 0, sobol: bool = True, dtype: torch.dtype = torch.float32,
-                levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False,
-                prebuilt: ChangScene | None = None, shadow_resolution: int = 1024, specular: bool = False,
-                roughness: float = 0.3) -> RenderResult:
-    """Render a camera image with Chang's texture-space importance sampling (``samples`` = N).
+class HybridRenderer(IcdfRenderer):
+    """Chang et al.'s hybrid: an ``rings x per_ring + 1`` local filter plus ``samples`` global samples per frame.
 
-    ``stats`` separates ``t_precompute_s`` (atlas) from ``t_frame_s`` (irradiance atlas + sampling + sum).
-    ``shadow_resolution`` is that of the per-light shadow maps of the irradiance atlas. ``specular`` adds the
-    opt-in GGX boundary reflection (shadow-mapped), as in the other renderers. ``prebuilt`` reuses a
-    :func:`build_icdf` result (relighting, new views, material edits on ``prebuilt.module.material``).
+    Knobs: those of :class:`IcdfRenderer`, and ``rings``, ``per_ring`` (the filter pattern), ``c`` (the split's
+    importance bound, mm^-1), ``k`` (the blend width of W_l, W_g), ``local_eps`` (the local term's truncation).
+    ``stats`` also hold the split radius ``r_p_mm`` and the local bound ``local_bound_mm``.
     """
-    _check_dtype(dtype)
-    mesh = mesh.with_dtype(dtype)
-    built = prebuilt or build_icdf(mesh, material, atlas_resolution=atlas_resolution, levels=levels,
-                                   max_pairs=max_pairs, progress=progress)
-    return _render(built, mesh, material, lights, camera, samples=samples, seed=seed, sobol=sobol,
-                   specular=specular, roughness=roughness, hybrid=False, shadow_resolution=shadow_resolution)
+
+    method = "hybrid"
+    hybrid = True
+    defaults: ClassVar[dict] = dict(IcdfRenderer.defaults, rings=4, per_ring=8, c=0.1, k=1.5, local_eps=1e-3)
+
+    def _build(self) -> None:
+        k = self.knobs
+        self.built = build_hybrid(self.mesh, self.material, atlas_resolution=k["atlas_resolution"], rings=k["rings"],
+                                  per_ring=k["per_ring"], c=k["c"], k=k["k"], local_eps=k["local_eps"],
+                                  levels=k["levels"], max_pairs=k["max_pairs"], progress=self.progress)
+        self.atlas, self.module = self.built.atlas, self.built.module
 
 
-def render_hybrid(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *, samples: int = 1024,
-                  atlas_resolution: int = 512, seed: int = 0, sobol: bool = True, dtype: torch.dtype = torch.float32,
-                  rings: int = 4, per_ring: int = 8, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
-                  levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False,
-                  prebuilt: ChangScene | None = None, shadow_resolution: int = 1024, specular: bool = False,
-                roughness: float = 0.3) -> RenderResult:
-    """Render with Chang's hybrid: an ``rings x per_ring + 1`` local filter plus ``samples`` global samples.
+def _frame(cls: type[IcdfRenderer], mesh: Mesh, material, lights, camera, *, samples: int, dtype: torch.dtype,
+           progress: bool, prebuilt: IcdfRenderer | None, **knobs) -> RenderResult:
+    renderer = prebuilt or cls(mesh, material, dtype=dtype, progress=progress, samples=samples, **knobs)
+    if prebuilt is not None:
+        renderer.knobs.update(samples=samples, **{k: v for k, v in knobs.items() if k in ("seed", "sobol")})
+    res = renderer.render(lights, camera)
+    res.stats.update(t_precompute_s=res.stats.get("t_precompute_s", renderer.setup_s), t_frame_s=res.stats["frame_s"])
+    return res
 
-    ``stats`` also holds the split radius ``r_p_mm`` and the local bound ``local_bound_mm``.
+
+def render_icdf(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
+                samples: int = 1024, dtype: torch.dtype = torch.float32, progress: bool = False,
+                prebuilt: IcdfRenderer | None = None, **knobs) -> RenderResult:
+    """Render one frame with Chang's texture-space importance sampling (``samples`` = N); see :class:`IcdfRenderer`.
+
+    ``stats`` separate ``setup_s`` (atlas) from ``frame_s`` (irradiance atlas + sampling + sum). ``prebuilt``
+    reuses an :class:`IcdfRenderer` (relighting, new views, material edits on its ``material``; ``samples``,
+    ``seed`` and ``sobol`` may change per frame).
     """
-    _check_dtype(dtype)
-    mesh = mesh.with_dtype(dtype)
-    built = prebuilt or build_hybrid(mesh, material, atlas_resolution=atlas_resolution, rings=rings,
-                                     per_ring=per_ring, c=c, k=k, local_eps=local_eps, levels=levels,
-                                     max_pairs=max_pairs, progress=progress)
-    return _render(built, mesh, material, lights, camera, samples=samples, seed=seed, sobol=sobol,
-                   specular=specular, roughness=roughness, hybrid=True, shadow_resolution=shadow_resolution)
+    return _frame(IcdfRenderer, mesh, material, lights, camera, samples=samples, dtype=dtype, progress=progress,
+                  prebuilt=prebuilt, **knobs)
+
+
+def render_hybrid(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
+                  samples: int = 1024, dtype: torch.dtype = torch.float32, progress: bool = False,
+                  prebuilt: HybridRenderer | None = None, **knobs) -> RenderResult:
+    """Render one frame with Chang's hybrid (see :class:`HybridRenderer`)."""
+    return _frame(HybridRenderer, mesh, material, lights, camera, samples=samples, dtype=dtype, progress=progress,
+                  prebuilt=prebuilt, **knobs)

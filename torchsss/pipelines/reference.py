@@ -23,14 +23,13 @@ receivers x samples profile evaluations; memory is bounded by ``max_pairs``.
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from tqdm import tqdm
 
 from torchsss.geometry.camera import Camera
@@ -42,14 +41,15 @@ from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.sampling import SurfaceSamples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.geometry.visibility import point_inside, ray_visibility
+from torchsss.modules.material import material_module
 from torchsss.ops.reference import reference_radiosity
-from torchsss.physics.budget import splat_spacing
-from torchsss.physics.dipole import dipole_rd
-from torchsss.physics.fresnel import fresnel_transmittance, schlick_transmittance
+from torchsss.physics.fresnel import check_fresnel, exit_radiance
+from torchsss.physics.materials import Material
+from torchsss.pipelines.renderer import Renderer, RenderResult, check_dtype, check_lights, check_objects
 from torchsss.pipelines.specular import specular_radiance
-from torchsss.scene import Material
 
 __all__ = [
+    "ReferenceRenderer",
     "RenderResult",
     "check_objects",
     "default_spacing",
@@ -62,35 +62,19 @@ __all__ = [
 _SHADOWS = ("raytrace", "shadowmap", "none")
 
 
-@dataclass
-class RenderResult:
-    """A rendered image and what it took.
+def default_spacing(material: Material | nn.Module, mesh: Mesh | None = None, eps: float = 0.01) -> float:
+    """Sample spacing (mm) for the reference: the finest per-channel lattice spacing of the profile at ``eps``.
 
-    Attributes:
-        radiance: :math:`(1, 3, H, W)` linear outgoing radiance :math:`L = F_t/\\pi \\, B` (0 on background).
-        radiosity: :math:`(1, 3, H, W)` :math:`B` at the covered pixels.
-        mask: :math:`(1, 1, H, W)` bool, pixels that see the object.
-        stats: timings (s) and sizes of every stage.
-    """
-
-    radiance: Tensor
-    radiosity: Tensor
-    mask: Tensor
-    stats: dict = field(default_factory=dict)
-
-
-def default_spacing(material: Material, mesh: Mesh | None = None, eps: float = 0.01) -> float:
-    """Sample spacing (mm) for the reference: the finest per-channel splat spacing at ``eps``.
-
-    With a mesh it is also kept above ``size_mm / 4000`` so that a thin material on a huge object cannot ask
-    for billions of samples.
+    The profile module's ``spacing(eps)`` (:func:`~torchsss.physics.splat_spacing` for the dipole). With a mesh it
+    is also kept above ``size_mm / 4000`` so that a thin material on a huge object cannot ask for billions of
+    samples.
 
     Examples:
         >>> round(default_spacing(Material.from_json("skin1")), 3)
         0.608
     """
-    sa, ss, eta = material.tensors()
-    s = float(splat_spacing(sa, ss, eta, eps=eps).min())
+    module = material_module(material, dtype=None if isinstance(material, nn.Module) else torch.float64)
+    s = float(module.spacing(eps).min())
     if mesh is not None:
         s = max(s, mesh.size_mm / 4000.0)
     return s
@@ -107,11 +91,28 @@ def _check_lights(mesh: Mesh, lights: Sequence[Light]) -> None:
             )
 
 
+def _visibility(mesh: Mesh, lights: Sequence[Light], points: Tensor, normals: Tensor, shadows: str,
+                shadow_resolution: int = 2048) -> list[Tensor | None]:
+    """Per light, the :math:`(1, N)` visibility of points :math:`(N, 3)` by ``shadows``; None when unshadowed."""
+    if shadows not in _SHADOWS:
+        raise ValueError(f"shadows: expected one of {_SHADOWS}, got {shadows!r}")
+    vis: list[Tensor | None] = []
+    for light in lights:
+        if isinstance(light, EnvironmentLight) or shadows == "none":
+            vis.append(None)  # environments are unshadowed, as in Shah 6.4.2 and the splat renderer
+        elif shadows == "raytrace":
+            vis.append(ray_visibility(mesh, light, points, normals).unsqueeze(0))
+        else:
+            sm = build_shadow_map(mesh, light, shadow_resolution)
+            vis.append(shadow_visibility(sm, points.unsqueeze(0), normals.unsqueeze(0), light))
+    return vis
+
+
 def sample_irradiance(
     mesh: Mesh,
     samples: SurfaceSamples,
     lights: Sequence[Light],
-    eta: float,
+    eta: float | Tensor,
     *,
     shadows: str = "raytrace",
     shadow_resolution: int = 2048,
@@ -123,20 +124,9 @@ def sample_irradiance(
     :func:`~torchsss.geometry.shadow.build_shadow_map`) or ``"none"``. Environment lights
     (:class:`~torchsss.geometry.environment.EnvironmentLight`) are unshadowed: their order-2 SH irradiance with
     the Fresnel-cosine lobe is exact for the band-limited environment, and its occlusion is ignored (as in Shah).
+    ``eta`` is a number or the material module's ``eta`` tensor.
     """
-    if shadows not in _SHADOWS:
-        raise ValueError(f"shadows: expected one of {_SHADOWS}, got {shadows!r}")
-    vis: list[Tensor | None] = []
-    for light in lights:
-        if isinstance(light, EnvironmentLight):
-            vis.append(None)  # unshadowed, as in Shah 6.4.2 and the splat renderer
-        elif shadows == "raytrace":
-            vis.append(ray_visibility(mesh, light, samples.position, samples.normal).unsqueeze(0))
-        elif shadows == "shadowmap":
-            sm = build_shadow_map(mesh, light, shadow_resolution)
-            vis.append(shadow_visibility(sm, samples.position.unsqueeze(0), samples.normal.unsqueeze(0), light))
-        else:
-            vis.append(None)
+    vis = _visibility(mesh, lights, samples.position, samples.normal, shadows, shadow_resolution)
     e = surface_irradiance(samples.position.unsqueeze(0), samples.normal.unsqueeze(0), list(lights), eta,
                            visibility=vis, fresnel=fresnel)
     return e.squeeze(0)
@@ -146,19 +136,21 @@ def reference_radiosity_at(
     points: Tensor,
     samples: SurfaceSamples,
     irradiance: Tensor,
-    material: Material,
+    material: Material | nn.Module,
     *,
     max_pairs: int = 1 << 22,
     progress: bool = False,
 ) -> Tensor:
     """:math:`B` at receiver points :math:`(M, 3)` from samples with irradiance :math:`(N, 3)`; returns (M, 3).
 
-    Receivers are processed in blocks (a tqdm bar over receivers when ``progress``); the dtype is the
-    points' dtype.
+    ``material`` is a profile module (or a record, made into one in the points' dtype). Receivers are processed
+    in blocks (a tqdm bar over receivers when ``progress``); the dtype is the points' dtype.
     """
     dtype = points.dtype
-    sa, ss, eta = material.tensors(dtype=dtype, device=points.device)
-    profile = functools.partial(dipole_rd, sigma_a=sa, sigma_s_prime=ss, eta=eta)
+    record = not isinstance(material, nn.Module)
+    profile = material_module(material, dtype=dtype if record else None, device=points.device if record else None)
+    if record:  # a record's module is private here: nothing to differentiate
+        profile.requires_grad_(False)
     src_pos = samples.position.to(dtype).unsqueeze(0)
     src_e = irradiance.to(dtype).unsqueeze(0)
     src_a = samples.area.to(dtype).unsqueeze(0)
@@ -168,118 +160,128 @@ def reference_radiosity_at(
     with tqdm(total=points.shape[0], desc="reference B(x_o)", unit="px", disable=not progress, leave=False) as bar:
         for start in range(0, points.shape[0], block):
             dst = points[start:start + block].unsqueeze(0)
-            out.append(reference_radiosity(src_pos, src_e, src_a, dst, profile, max_pairs=max_pairs).squeeze(0))
+            b = reference_radiosity(src_pos, src_e, src_a, dst, profile, max_pairs=max_pairs).squeeze(0)
+            out.append(b.to(dtype))
             bar.update(dst.shape[1])
     if not out:
         return points.new_zeros(0, 3)
     return torch.cat(out)
 
 
-def render_reference(
-    mesh: Mesh,
-    material: Material,
-    lights: Sequence[Light],
-    camera: Camera,
-    *,
-    spacing_mm: float | None = None,
-    eps: float = 0.01,
-    shadows: str = "raytrace",
-    fresnel: str = "exact",
-    dtype: torch.dtype = torch.float32,
-    max_pairs: int = 1 << 22,
-    max_samples: int = 2_000_000,
-    progress: bool = False,
-    specular: bool = False,
-    roughness: float = 0.3,
-) -> RenderResult:
-    """Render the ground-truth image of a homogeneous translucent mesh.
+def _specular(mesh: Mesh, gbuf, lights: list[Light], eta, shadows: str, roughness: float) -> Tensor:
+    pix = gbuf.position.flatten(2).transpose(1, 2)[0]
+    pix_n = gbuf.normal.flatten(2).transpose(1, 2)[0]
+    vis = _visibility(mesh, lights, pix, pix_n, shadows)
+    return specular_radiance(gbuf, lights, eta, roughness=roughness, visibility=vis)
 
-    Args:
-        mesh: the object (mm).
-        material: its dipole material (mm^-1).
-        lights: the lights.
-        camera: the camera.
-        spacing_mm: surface sample spacing; default :func:`default_spacing` at ``eps``.
+
+class ReferenceRenderer(Renderer):
+    """The ground-truth renderer (module docstring), built once for a mesh and a material.
+
+    Setup: the surface samples at the spacing (default :func:`default_spacing` of the material at ``eps``).
+    Per frame: the camera G-buffer, the irradiance of every sample, all pairs, the exit radiance.
+
+    Knobs:
+        spacing_mm: surface sample spacing (mm); default from the material and ``eps``.
         eps: the tolerance that picks the default spacing.
         shadows: ``"raytrace"`` (exact, default), ``"shadowmap"`` or ``"none"``.
         fresnel: ``"exact"`` or ``"schlick"`` for the transmittance at entry and exit.
-        dtype: float32 (default) or float64 for the integration.
         max_pairs: pair budget of one integrator chunk (bounds memory).
         max_samples: refuse spacings that need more samples than this (ValueError).
-        progress: show tqdm bars.
-        specular: add the boundary's GGX specular reflection (:func:`~torchsss.pipelines.specular.specular_radiance`)
-            with the same visibility; off by default so that images compare subsurface transport alone.
+        specular: add the boundary's GGX specular reflection with the same visibility (off by default so that
+            images compare subsurface transport alone).
         roughness: GGX alpha of the specular term.
 
+    Examples:
+        >>> from torchsss.geometry import Camera, DirectionalLight, sphere
+        >>> r = ReferenceRenderer(sphere(10.0, 2), "skin1", spacing_mm=2.0)
+        >>> res = r.render([DirectionalLight((0, 0, -1), 1.0)], Camera(eye=(0, 0, 60), target=(0, 0, 0),
+        ...                width=8, height=8))
+        >>> tuple(res.radiance.shape), res.stats["method"], res.stats["knobs"]["spacing_mm"]
+        ((1, 3, 8, 8), 'reference', 2.0)
+    """
+
+    method = "reference"
+    defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
+                    max_samples=2_000_000, specular=False, roughness=0.3)
+
+    def _build(self) -> None:
+        k = self.knobs
+        self.fresnel = check_fresnel(k["fresnel"], ("exact", "schlick"))
+        if k["shadows"] not in _SHADOWS:
+            raise ValueError(f"shadows: expected one of {_SHADOWS}, got {k['shadows']!r}")
+        spacing = default_spacing(self.material, self.mesh, k["eps"]) if k["spacing_mm"] is None \
+            else float(k["spacing_mm"])
+        if not (math.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"spacing_mm: expected a finite value > 0, got {k['spacing_mm']!r}")
+        k["spacing_mm"] = spacing
+        self.samples = surface_samples(self.mesh, spacing, max_samples=k["max_samples"])
+
+    def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
+        k, mesh = self.knobs, self.mesh
+        stats: dict = {"spacing_mm": k["spacing_mm"], "samples": int(self.samples.area.shape[0])}
+        _check_lights(mesh, lights)
+        eta = self.eta
+        gbuf = camera_gbuffer(mesh, camera)
+        t1 = time.perf_counter()
+        e = sample_irradiance(mesh, self.samples, lights, eta, shadows=k["shadows"], fresnel=self.fresnel)
+        stats["t_irradiance_s"] = time.perf_counter() - t1
+        mask = gbuf.mask[0, 0]
+        receivers = gbuf.position[0].permute(1, 2, 0)[mask]
+        stats["receivers"] = int(receivers.shape[0])
+        stats["pairs"] = stats["receivers"] * stats["samples"]
+        t2 = time.perf_counter()
+        b = reference_radiosity_at(receivers, self.samples, e, self.material, max_pairs=k["max_pairs"],
+                                   progress=self.progress)
+        stats["t_integrate_s"] = time.perf_counter() - t2
+        h, w = camera.resolution
+        radiosity = torch.zeros(h, w, 3, dtype=b.dtype, device=receivers.device)
+        radiosity[mask] = b
+        radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
+        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        radiance = exit_radiance(radiosity, cos_o, eta, self.fresnel) * gbuf.mask
+        if k["specular"]:
+            radiance = radiance + _specular(mesh, gbuf, lights, eta, k["shadows"], k["roughness"])
+        return RenderResult(radiance, radiosity, gbuf.mask, stats)
+
+
+def render_reference(
+    mesh: Mesh,
+    material: Material | nn.Module,
+    lights: Sequence[Light],
+    camera: Camera,
+    *,
+    dtype: torch.dtype = torch.float32,
+    progress: bool = False,
+    **knobs,
+) -> RenderResult:
+    """Render the ground-truth image of a homogeneous translucent mesh: one frame of :class:`ReferenceRenderer`.
+
+    Args:
+        mesh: the object (mm).
+        material: its material (a :class:`~torchsss.physics.Material` record, a preset name or a profile module).
+        lights: the lights.
+        camera: the camera.
+        dtype: float32 (default) or float64 for the integration.
+        progress: show tqdm bars.
+        **knobs: the knobs of :class:`ReferenceRenderer` (``spacing_mm``, ``eps``, ``shadows``, ``fresnel``,
+            ``max_pairs``, ``max_samples``, ``specular``, ``roughness``).
+
     Returns:
-        A :class:`RenderResult`; ``stats`` holds the spacing, counts and the time of every stage.
+        A :class:`RenderResult`; ``stats`` holds the spacing, counts, ``setup_s``, ``frame_s`` and the stages.
 
     Raises:
         ValueError: a light inside a (watertight) mesh, a camera inside or too close to it, bad options.
     """
-    if dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
-    if fresnel not in ("exact", "schlick"):
-        raise ValueError(f"fresnel: expected 'exact' or 'schlick', got {fresnel!r}")
-    lights = list(lights)
-    if not lights:
-        raise ValueError("lights: expected at least one light, got none")
-    stats: dict = {}
-    t0 = time.perf_counter()
-    mesh = mesh.with_dtype(dtype)
-    _check_lights(mesh, lights)
-    spacing = default_spacing(material, mesh, eps) if spacing_mm is None else float(spacing_mm)
-    if not (math.isfinite(spacing) and spacing > 0):
-        raise ValueError(f"spacing_mm: expected a finite value > 0, got {spacing_mm!r}")
-    gbuf = camera_gbuffer(mesh, camera)
-    samples = surface_samples(mesh, spacing, max_samples=max_samples)
-    stats.update(spacing_mm=spacing, samples=int(samples.area.shape[0]), t_setup_s=time.perf_counter() - t0)
-    t1 = time.perf_counter()
-    e = sample_irradiance(mesh, samples, lights, material.eta, shadows=shadows, fresnel=fresnel)
-    stats["t_irradiance_s"] = time.perf_counter() - t1
-    mask = gbuf.mask[0, 0]
-    receivers = gbuf.position[0].permute(1, 2, 0)[mask]
-    stats["receivers"] = int(receivers.shape[0])
-    stats["pairs"] = stats["receivers"] * stats["samples"]
-    t2 = time.perf_counter()
-    b = reference_radiosity_at(receivers, samples, e, material, max_pairs=max_pairs, progress=progress)
-    stats["t_integrate_s"] = time.perf_counter() - t2
-    h, w = camera.resolution
-    radiosity = torch.zeros(h, w, 3, dtype=dtype, device=receivers.device)
-    radiosity[mask] = b
-    radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
-    if fresnel == "exact":
-        ft = fresnel_transmittance(cos_o, material.eta)
-    else:
-        ft = schlick_transmittance(cos_o, material.eta)
-    radiance = ft / math.pi * radiosity * gbuf.mask
-    if specular:
-        pix = gbuf.position.flatten(2).transpose(1, 2)
-        pix_n = gbuf.normal.flatten(2).transpose(1, 2)
-        vis = [None if shadows == "none" or isinstance(light, EnvironmentLight) else
-               ray_visibility(mesh, light, pix[0], pix_n[0]).unsqueeze(0) if shadows == "raytrace" else
-               shadow_visibility(build_shadow_map(mesh, light, 2048), pix, pix_n, light) for light in lights]
-        radiance = radiance + specular_radiance(gbuf, lights, material.eta, roughness=roughness, visibility=vis)
-    stats["t_total_s"] = time.perf_counter() - t0
-    return RenderResult(radiance, radiosity, gbuf.mask, stats)
-
-
-def check_objects(objects: object) -> list[tuple[Mesh, Material]]:
-    """Validate a list of ``(mesh, material)`` pairs (the multi-object renderers' input); returns it as a list."""
-    if not isinstance(objects, Sequence) or isinstance(objects, (str, Mesh)) or len(objects) == 0:
-        raise ValueError(f"objects: expected a non-empty list of (Mesh, Material) pairs, got {objects!r}")
-    out = []
-    for i, item in enumerate(objects):
-        if not (isinstance(item, Sequence) and len(item) == 2 and isinstance(item[0], Mesh)
-                and isinstance(item[1], Material)):
-            raise TypeError(f"objects[{i}]: expected a (Mesh, Material) pair, got {type(item).__name__}")
-        out.append((item[0], item[1]))
-    return out
+    renderer = ReferenceRenderer(mesh, material, dtype=dtype, progress=progress, **knobs)
+    res = renderer.render(lights, camera)
+    res.stats["t_setup_s"] = res.stats["setup_s"]
+    res.stats["t_total_s"] = res.stats["setup_s"] + res.stats["frame_s"]
+    return res
 
 
 def render_reference_objects(
-    objects: Sequence[tuple[Mesh, Material]],
+    objects: Sequence[tuple[Mesh, Material | nn.Module]],
     lights: Sequence[Light],
     camera: Camera,
     *,
@@ -333,19 +335,15 @@ def render_reference_objects(
         ((1, 3, 16, 16), True)
     """
     objects = check_objects(objects)
-    if dtype not in (torch.float32, torch.float64):
-        raise TypeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
-    if fresnel not in ("exact", "schlick"):
-        raise ValueError(f"fresnel: expected 'exact' or 'schlick', got {fresnel!r}")
+    check_dtype(dtype)
+    check_fresnel(fresnel, ("exact", "schlick"))
     if shadows not in _SHADOWS:
         raise ValueError(f"shadows: expected one of {_SHADOWS}, got {shadows!r}")
-    lights = list(lights)
-    if not lights:
-        raise ValueError("lights: expected at least one light, got none")
+    lights = check_lights(lights)
     stats: dict = {"objects": len(objects)}
     t0 = time.perf_counter()
     meshes = [m.with_dtype(dtype) for m, _ in objects]
-    materials = [mat for _, mat in objects]
+    materials = [material_module(mat, dtype=None if isinstance(mat, nn.Module) else dtype) for _, mat in objects]
     for m in meshes:
         _check_lights(m, lights)
     merged, face_object = merge_meshes(meshes)
@@ -382,19 +380,10 @@ def render_reference_objects(
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     radiance = torch.zeros_like(radiosity)
     for k, material in enumerate(materials):
-        if fresnel == "exact":
-            ft = fresnel_transmittance(cos_o, material.eta)
-        else:
-            ft = schlick_transmittance(cos_o, material.eta)
-        radiance = radiance + ft / math.pi * radiosity * masks[:, k:k + 1]
+        radiance = radiance + exit_radiance(radiosity, cos_o, material.eta, fresnel) * masks[:, k:k + 1]
     if specular:
-        pix = gbuf.position.flatten(2).transpose(1, 2)
-        pix_n = gbuf.normal.flatten(2).transpose(1, 2)
-        vis = [None if shadows == "none" or isinstance(light, EnvironmentLight) else
-               ray_visibility(merged, light, pix[0], pix_n[0]).unsqueeze(0) if shadows == "raytrace" else
-               shadow_visibility(build_shadow_map(merged, light, 2048), pix, pix_n, light) for light in lights]
         for k, material in enumerate(materials):
-            spec = specular_radiance(gbuf, lights, material.eta, roughness=roughness, visibility=vis)
+            spec = _specular(merged, gbuf, lights, material.eta, shadows, roughness)
             radiance = radiance + spec * masks[:, k:k + 1]
     stats["t_total_s"] = time.perf_counter() - t0
     return RenderResult(radiance, radiosity, gbuf.mask, stats)

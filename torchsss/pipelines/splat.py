@@ -38,9 +38,10 @@ import functools
 import math
 import time
 from collections.abc import Sequence
+from typing import ClassVar
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
@@ -50,28 +51,30 @@ from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.peel import environment_splats
 from torchsss.geometry.shadow import bounding_sphere
-from torchsss.modules.lensch import LenschTranslucency
-from torchsss.modules.material import DipoleMaterial
+from torchsss.modules.material import material_module
 from torchsss.modules.splat import SplatTranslucency
-from torchsss.physics.budget import splat_spacing
-from torchsss.physics.fresnel import fresnel_transmittance
-from torchsss.pipelines.reference import RenderResult, check_objects
+from torchsss.physics.fresnel import exit_radiance
+from torchsss.physics.materials import Material
+from torchsss.pipelines.renderer import Renderer, RenderResult, check_lights, check_objects
 from torchsss.pipelines.specular import shadow_mapped_specular
-from torchsss.scene import Material
 
-__all__ = ["render_splat", "render_splat_objects", "splat_grid"]
-
+__all__ = ["SplatRenderer", "render_splat", "render_splat_objects", "splat_grid"]
 
 
 @functools.lru_cache(maxsize=256)
-def _splat_spacing(sigma_a: tuple, sigma_s_prime: tuple, eta: float, eps: float) -> float:
-    """The smallest channel's splat spacing h(eps) in mm, cached: the bisection costs 0.1-2 s, every frame."""
-    sa, ss, et = Material(sigma_a, sigma_s_prime, eta).tensors()
-    return float(splat_spacing(sa, ss, et, eps).min())
+def _record_spacing(material: Material, eps: float) -> float:
+    """The smallest channel's spacing h(eps) in mm of a record, cached: the bisection costs 0.1-2 s."""
+    return float(material_module(material, dtype=torch.float64).spacing(eps).min())
 
 
-def splat_grid(mesh: Mesh, material: Material | Sequence[Material], eps: float = 0.01, max_grid: int = 512,
-               oversample: float = 2.0) -> int:
+def _spacing(material: Material | nn.Module, eps: float) -> float:
+    if isinstance(material, Material):
+        return _record_spacing(material, float(eps))
+    return float(material.spacing(eps).min())
+
+
+def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | nn.Module], eps: float = 0.01,
+               max_grid: int = 512, oversample: float = 2.0) -> int:
     """Light-view resolution :math:`n = \\lceil s \\cdot 2R / h(\\epsilon) \\rceil` (module docstring), capped.
 
     With several materials (a multi-object scene, ``mesh`` the merged mesh), :math:`h` is the smallest splat
@@ -88,10 +91,11 @@ def splat_grid(mesh: Mesh, material: Material | Sequence[Material], eps: float =
         raise ValueError(f"max_grid: expected an int >= 2, got {max_grid!r}")
     if not (isinstance(oversample, (int, float)) and 0 < oversample < math.inf):
         raise ValueError(f"oversample: expected a positive number, got {oversample!r}")
-    materials = [material] if isinstance(material, Material) else list(material)
-    if not materials or not all(isinstance(m, Material) for m in materials):
-        raise TypeError(f"material: expected a Material or a non-empty list of Material, got {material!r}")
-    h = min(_splat_spacing(mat.sigma_a, mat.sigma_s_prime, mat.eta, float(eps)) for mat in materials)
+    materials = [material] if isinstance(material, (Material, nn.Module)) else list(material)
+    if not materials or not all(isinstance(m, (Material, nn.Module)) for m in materials):
+        raise TypeError(f"material: expected a Material, a profile module or a non-empty list of them, got "
+                        f"{material!r}")
+    h = min(_spacing(mat, eps) for mat in materials)
     _, radius = bounding_sphere(mesh)
     return int(min(max_grid, max(2, math.ceil(oversample * 2.0 * float(radius) / h))))
 
@@ -135,70 +139,112 @@ def _at_sources(attr: Tensor | None, mesh: Mesh, face_id: Tensor, bary: Tensor) 
     return (corners * bary.unsqueeze(-1)).sum(1).unsqueeze(0)
 
 
-def render_splat(mesh: Mesh, material: Material, lights: Sequence[Light], camera: Camera, *, eps: float = 0.01,
-                 grid: int | None = None, max_grid: int = 512, oversample: float = 2.0, method: str = "auto",
-                 dtype: torch.dtype = torch.float32, progress: bool = False, specular: bool = False,
-                 roughness: float = 0.3, peel_layers: int = 8, distance_scale: Tensor | None = None,
-                 irradiance_scale: Tensor | None = None) -> RenderResult:
-    """Render a camera image with Shah's splatting; ``stats`` holds the grid, splat count and timings.
+class SplatRenderer(Renderer):
+    """Shah's image-space splatting (module docstring): the budget and the module once, splat every frame.
+
+    Setup: the light-view grid from the splat budget (:func:`splat_grid`) and the
+    :class:`~torchsss.modules.splat.SplatTranslucency` module (its :math:`r_{max}`); nothing depends on the mesh's
+    pose, so a deforming mesh may be given per frame (:meth:`render` takes an optional ``mesh``).
+
+    Knobs:
+        eps: splat budget tolerance (r_max and the splat spacing).
+        grid: light-view resolution (None: :func:`splat_grid`).
+        max_grid: cap of the automatic grid.
+        oversample: factor on the budget's grid.
+        splat_method: ``"auto"``, ``"window"`` or ``"tile"`` (:func:`~torchsss.ops.splat.splat_radiosity`).
+        peel_layers: cap of the depth-peeling layers per axis for environment lights.
+        specular: add the shadow-mapped GGX boundary reflection (point, spot and directional lights).
+        roughness: GGX alpha of ``specular``.
+
+    Per-vertex modifiers ``distance_scale`` :math:`M_d > 0` and ``irradiance_scale`` :math:`M_i \\ge 0`,
+    :math:`(V,)` or :math:`(V, 3)` (Shah eq. 7.4), are constructor arguments.
+    """
+
+    method = "splat"
+    defaults: ClassVar[dict] = dict(eps=0.01, grid=None, max_grid=512, oversample=2.0, splat_method="auto",
+                                    peel_layers=8, specular=False, roughness=0.3)
+
+    def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
+                 irradiance_scale: Tensor | None = None, **kwargs) -> None:
+        self._modifiers = (distance_scale, irradiance_scale)
+        super().__init__(mesh, material, **kwargs)
+
+    def _build(self) -> None:
+        k, mesh, dtype = self.knobs, self.mesh, self.dtype
+        if not 0.0 < float(k["eps"]) < 1.0:
+            raise ValueError(f"eps: expected a number in (0, 1), got {k['eps']!r}")
+        md = _vertex_modifier(self._modifiers[0], "distance_scale", mesh, dtype)
+        mi = _vertex_modifier(self._modifiers[1], "irradiance_scale", mesh, dtype)
+        if md is not None and not bool((md > 0).all()):
+            raise ValueError(f"distance_scale: expected values > 0, got min {float(md.min())}")
+        if mi is not None and not bool((mi >= 0).all()):
+            raise ValueError(f"irradiance_scale: expected values >= 0, got min {float(mi.min())}")
+        self.md, self.mi = md, mi
+        k["grid"] = splat_grid(mesh, self.material, k["eps"], k["max_grid"], k["oversample"]) if k["grid"] is None \
+            else int(k["grid"])
+        self.module = SplatTranslucency(self.material, eps=k["eps"], method=k["splat_method"])
+
+    def render(self, lights, camera: Camera, mesh: Mesh | None = None) -> RenderResult:
+        """One frame (see :meth:`Renderer.render`); ``mesh`` replaces the built mesh's vertices (same topology)."""
+        if mesh is not None:
+            if not isinstance(mesh, Mesh) or mesh.faces.shape != self.mesh.faces.shape:
+                raise ValueError("mesh: expected a Mesh with the built mesh's faces (a deformed pose), got another "
+                                 "topology")
+            self.mesh = mesh.with_dtype(self.dtype)
+        return super().render(lights, camera)
+
+    def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
+        k, mesh, dtype, eta = self.knobs, self.mesh, self.dtype, self.eta
+        n = k["grid"]
+        gbuf = camera_gbuffer(mesh, camera)
+        view_proj = camera.view_proj(dtype=dtype, device=mesh.vertices.device)
+        b = torch.zeros(1, 3, camera.height, camera.width, dtype=dtype, device=mesh.vertices.device)
+        splats = 0
+        for light in lights:
+            pos, flux, fid, bary = _light_sources(mesh, light, n, eta, k["peel_layers"])
+            splats += int(pos.shape[0])
+            b = b + self.module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
+                                src_distance_scale=_at_sources(self.md, mesh, fid, bary),
+                                src_irradiance_scale=_at_sources(self.mi, mesh, fid, bary))
+        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        radiance = exit_radiance(b, cos_o, eta) * gbuf.mask
+        if k["specular"]:
+            radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])
+        stats = {"grid": n, "splats": splats, "r_max_mm": float(self.module.r_max), "eps": k["eps"]}
+        return RenderResult(radiance, b, gbuf.mask, stats)
+
+
+def render_splat(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
+                 method: str = "auto", dtype: torch.dtype = torch.float32, progress: bool = False,
+                 distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
+                 **knobs) -> RenderResult:
+    """Render one frame with Shah's splatting (:class:`SplatRenderer`); ``stats`` hold the grid, splat count, times.
 
     Args:
         mesh: the object (mm).
-        material: its material.
+        material: its material (record, preset name or profile module).
         lights: point, spot, directional or environment lights.
         camera: the viewing camera.
-        eps: splat budget tolerance (r_max and the splat spacing).
-        grid: light-view resolution (default: :func:`splat_grid`).
-        max_grid: cap of the automatic grid.
-        oversample: factor on the budget's grid (see the module docstring).
-        method: splat method of :func:`~torchsss.ops.splat.splat_radiosity`.
+        method: splat method of :func:`~torchsss.ops.splat.splat_radiosity` (the ``splat_method`` knob).
         dtype: float dtype of the computation.
         progress: unused (no step takes long enough); accepted for the shared render interface.
-        specular: add the shadow-mapped GGX boundary reflection (point, spot and directional lights).
-        roughness: GGX alpha of ``specular``.
-        peel_layers: cap of the depth-peeling layers per axis for environment lights.
         distance_scale: per-vertex :math:`M_d > 0`, :math:`(V,)` or :math:`(V, 3)` (Shah eq. 7.4), or None.
         irradiance_scale: per-vertex :math:`M_i \\ge 0`, :math:`(V,)` or :math:`(V, 3)`, or None.
+        **knobs: ``eps``, ``grid``, ``max_grid``, ``oversample``, ``peel_layers``, ``specular``, ``roughness`` of
+            :class:`SplatRenderer`.
 
     Raises:
         ValueError: no lights, bad modifiers (shape, non-finite, out of range), a bad budget.
     """
-    del progress
-    lights = list(lights)
-    if not lights:
-        raise ValueError("lights: expected at least one light, got none")
-    mesh = mesh.with_dtype(dtype)
-    md = _vertex_modifier(distance_scale, "distance_scale", mesh, dtype)
-    mi = _vertex_modifier(irradiance_scale, "irradiance_scale", mesh, dtype)
-    if md is not None and not bool((md > 0).all()):
-        raise ValueError(f"distance_scale: expected values > 0, got min {float(md.min())}")
-    if mi is not None and not bool((mi >= 0).all()):
-        raise ValueError(f"irradiance_scale: expected values >= 0, got min {float(mi.min())}")
-    t0 = time.perf_counter()
-    n = splat_grid(mesh, material, eps, max_grid, oversample) if grid is None else int(grid)
-    sa, ss, eta = material.tensors(dtype=dtype)
-    module = SplatTranslucency(DipoleMaterial(sa, ss, eta), eps=eps, method=method)
-    gbuf = camera_gbuffer(mesh, camera)
-    view_proj = camera.view_proj(dtype=dtype, device=mesh.vertices.device)
-    b = torch.zeros(1, 3, camera.height, camera.width, dtype=dtype, device=mesh.vertices.device)
-    splats = 0
-    for light in lights:
-        pos, flux, fid, bary = _light_sources(mesh, light, n, material.eta, peel_layers)
-        splats += int(pos.shape[0])
-        with torch.no_grad():
-            b = b + module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
-                           src_distance_scale=_at_sources(md, mesh, fid, bary),
-                           src_irradiance_scale=_at_sources(mi, mesh, fid, bary))
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
-    radiance = LenschTranslucency.radiance(b, cos_o, material.eta) * gbuf.mask
-    if specular:
-        radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, material.eta, roughness=roughness)
-    stats = {"grid": n, "splats": splats, "r_max_mm": float(module.r_max), "eps": eps,
-             "t_frame_s": time.perf_counter() - t0}
-    return RenderResult(radiance, b, gbuf.mask, stats)
+    renderer = SplatRenderer(mesh, material, dtype=dtype, progress=progress, splat_method=method,
+                             distance_scale=distance_scale, irradiance_scale=irradiance_scale, **knobs)
+    res = renderer.render(lights, camera)
+    res.stats["t_frame_s"] = res.stats["frame_s"]
+    return res
 
 
-def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Sequence[Light], camera: Camera, *,
+def render_splat_objects(objects: Sequence[tuple[Mesh, Material | nn.Module]], lights: Sequence[Light],
+                         camera: Camera, *,
                          eps: float = 0.01, grid: int | None = None, max_grid: int = 512, oversample: float = 2.0,
                          method: str = "auto", clip_objects: bool = True, dtype: torch.dtype = torch.float32,
                          progress: bool = False, specular: bool = False, roughness: float = 0.3,
@@ -247,23 +293,20 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
     objects = check_objects(objects)
     if not 0.0 < float(eps) < 1.0:
         raise ValueError(f"eps: expected a number in (0, 1), got {eps!r}")
-    lights = list(lights)
-    if not lights:
-        raise ValueError("lights: expected at least one light, got none")
+    lights = check_lights(lights)
     t0 = time.perf_counter()
     meshes = [m.with_dtype(dtype) for m, _ in objects]
-    materials = [mat for _, mat in objects]
+    materials = [material_module(mat, dtype=None if isinstance(mat, nn.Module) else dtype) for _, mat in objects]
     merged, face_object = merge_meshes(meshes)
     device = merged.vertices.device
     n = splat_grid(merged, materials, eps, max_grid, oversample) if grid is None else int(grid)
-    module = SplatTranslucency([DipoleMaterial(*mat.tensors(dtype=dtype, device=device)) for mat in materials],
-                               eps=eps, method=method)
+    module = SplatTranslucency([m.to(device) for m in materials], eps=eps, method=method)
     gbuf = camera_gbuffer(merged, camera)
     dst_object = object_ids(gbuf.face_id, face_object)
     masks = object_masks(dst_object, len(objects))
     view_proj = camera.view_proj(dtype=dtype, device=device)
-    etas = sorted({mat.eta for mat in materials})
-    obj_eta = torch.tensor([mat.eta for mat in materials], dtype=dtype, device=device)
+    etas = sorted({float(mat.eta) for mat in materials})
+    obj_eta = torch.tensor([float(mat.eta) for mat in materials], dtype=dtype, device=device)
     pos, flux, obj = [], [], []
     for light in lights:
         views = [_light_sources(merged, light, n, e, peel_layers) for e in etas]  # the same points, per eta
@@ -285,7 +328,7 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material]], lights: Seque
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     radiance = torch.zeros_like(b)
     for k, mat in enumerate(materials):
-        radiance = radiance + fresnel_transmittance(cos_o, mat.eta) / math.pi * b * masks[:, k:k + 1]
+        radiance = radiance + exit_radiance(b, cos_o, mat.eta) * masks[:, k:k + 1]
         if specular:
             spec = shadow_mapped_specular(merged, gbuf, lights, mat.eta, roughness=roughness)
             radiance = radiance + spec * masks[:, k:k + 1]

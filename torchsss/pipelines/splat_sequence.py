@@ -24,12 +24,12 @@ from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer, light_view
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh, check_mesh
-from torchsss.modules.lensch import LenschTranslucency
-from torchsss.modules.material import DipoleMaterial
+from torchsss.modules.material import material_module
 from torchsss.modules.splat import SplatTranslucency
-from torchsss.pipelines.reference import RenderResult
+from torchsss.physics.fresnel import exit_radiance
+from torchsss.physics.materials import Material
+from torchsss.pipelines.renderer import RenderResult
 from torchsss.pipelines.splat import splat_grid
-from torchsss.scene import Material
 
 __all__ = ["render_splat_sequence"]
 
@@ -109,8 +109,8 @@ def render_splat_sequence(
 def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], camera: Camera, *, coherent: bool,
             eps: float, grid: int | None, max_grid: int, oversample: float, method: str, dtype: torch.dtype,
             radius_px: float, weights: str) -> Iterator[RenderResult]:
-    sa, ss, eta = material.tensors(dtype=dtype)
-    module = SplatTranslucency(DipoleMaterial(sa, ss, eta), eps=eps, method=method)
+    profile = material_module(material, dtype=None if isinstance(material, torch.nn.Module) else dtype)
+    module = SplatTranslucency(profile, eps=eps, method=method)
     faces: Tensor | None = None
     previous: list[AttachedSamples | None] = [None] * len(lights)
     for t, mesh in enumerate(meshes):
@@ -134,10 +134,10 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
         for k, light in enumerate(lights):
             if coherent:
                 previous[k], src_pos, src_flux, st = coherent_light_samples(
-                    mesh, light, n, material.eta, previous[k], radius_px=radius_px, weights=weights)
+                    mesh, light, n, profile.eta, previous[k], radius_px=radius_px, weights=weights)
                 reused, new = reused + st["reused"], new + st["new"]
             else:
-                lv = light_view(mesh, light, n, material.eta)
+                lv = light_view(mesh, light, n, profile.eta)
                 sel = lv.mask[0, 0]
                 src_pos = lv.position[0].permute(1, 2, 0)[sel].unsqueeze(0)
                 src_flux = lv.flux[0].permute(1, 2, 0)[sel].unsqueeze(0)
@@ -146,7 +146,7 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
             with torch.no_grad():
                 b = b + module(src_pos, src_flux, gbuf.position, gbuf.mask, view_proj)
         cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
-        radiance = LenschTranslucency.radiance(b, cos_o, material.eta) * gbuf.mask
+        radiance = exit_radiance(b, cos_o, profile.eta) * gbuf.mask
         stats = {"frame": t, "grid": n, "splats": splats, "flux": [float(v) for v in total],
                  "r_max_mm": float(module.r_max), "eps": eps, "coherent": coherent,
                  "t_frame_s": time.perf_counter() - t0}

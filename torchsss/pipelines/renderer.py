@@ -1,0 +1,159 @@
+"""The one shape every method shares: build once (:class:`Renderer`), render frames (:meth:`Renderer.render`).
+
+A renderer is built for one mesh and one material with its knobs; the constructor does all the setup that does
+not depend on the lights or the camera (atlas, kernels, throughput, tables, budgets, surface samples) and
+records its time as ``setup_s``; :meth:`Renderer.render` renders one frame for given lights and camera and
+returns a :class:`RenderResult` whose ``stats`` hold ``setup_s``, ``frame_s`` (this frame), ``method`` and the
+``knobs``. The material is held as a profile module (:func:`~torchsss.modules.material_module`): its ``eta`` is
+read every frame for the Fresnel terms of the irradiance and of the exit radiance, so editing it (or a gradient
+step on it) changes the whole image consistently, and its other parameters change ``R_d`` without a rebuild
+(rebuild after large material changes, where the knobs planned from the material, such as the splat budget,
+the throughput pattern or the reference's sample spacing, no longer fit).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from torchsss.geometry.camera import Camera
+from torchsss.geometry.lights import Light
+from torchsss.geometry.mesh import Mesh
+from torchsss.modules.material import material_module
+from torchsss.physics.materials import Material
+
+__all__ = ["RenderResult", "Renderer", "check_dtype", "check_lights", "check_objects"]
+
+
+@dataclass
+class RenderResult:
+    """A rendered image and what it took.
+
+    Attributes:
+        radiance: :math:`(1, 3, H, W)` linear outgoing radiance :math:`L = F_t/\\pi \\, B` (0 on background).
+        radiosity: :math:`(1, 3, H, W)` :math:`B` at the covered pixels.
+        mask: :math:`(1, 1, H, W)` bool, pixels that see the object.
+        stats: timings (s) and sizes; from a :class:`Renderer` also ``method``, ``setup_s``, ``frame_s``, ``knobs``.
+    """
+
+    radiance: Tensor
+    radiosity: Tensor
+    mask: Tensor
+    stats: dict = field(default_factory=dict)
+
+
+def check_dtype(dtype: object) -> torch.dtype:
+    """float32 or float64, else TypeError naming ``dtype``."""
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
+    return dtype  # type: ignore[return-value]
+
+
+def check_lights(lights: object) -> list[Light]:
+    """A non-empty list of lights (a single light is wrapped), else ValueError naming ``lights``."""
+    if isinstance(lights, Sequence) and not isinstance(lights, (str, bytes)):
+        out = list(lights)
+    else:
+        out = [lights]
+    if not out:
+        raise ValueError("lights: expected at least one light, got none")
+    return out  # type: ignore[return-value]
+
+
+def check_objects(objects: object) -> list[tuple[Mesh, Material | nn.Module]]:
+    """Validate a list of ``(mesh, material)`` pairs (the multi-object renderers' input); returns it as a list.
+
+    A material is a :class:`~torchsss.physics.Material` record or a profile module.
+    """
+    if not isinstance(objects, Sequence) or isinstance(objects, (str, Mesh)) or len(objects) == 0:
+        raise ValueError(f"objects: expected a non-empty list of (Mesh, Material) pairs, got {objects!r}")
+    out = []
+    for i, item in enumerate(objects):
+        if not (isinstance(item, Sequence) and len(item) == 2 and isinstance(item[0], Mesh)
+                and isinstance(item[1], (Material, nn.Module))):
+            raise TypeError(f"objects[{i}]: expected a (Mesh, Material) pair, got {type(item).__name__}")
+        out.append((item[0], item[1]))
+    return out
+
+
+class Renderer:
+    """Base of every method's renderer: build once in the constructor, then :meth:`render` frames.
+
+    Subclasses set :attr:`method`, implement :meth:`_build` (the setup, may use ``self.mesh``,
+    ``self.material``, ``self.knobs``) and :meth:`_render` (one frame), and list their knobs with defaults in
+    :attr:`defaults`. Unknown knobs are an error (a typo must not be silently ignored).
+
+    Attributes:
+        method: the method's name (``"reference"``, ``"lensch"``, ...).
+        mesh: the object (mm), in the renderer's dtype.
+        material: the profile module (its parameters receive gradients when ``differentiable``).
+        knobs: every knob's value (the defaults completed by what was given), JSON-serialisable.
+        setup_s: seconds the constructor took.
+    """
+
+    method = "base"
+    #: whether the method renders a translucent material (caustics' glass is described by its knobs instead).
+    needs_material = True
+    #: knob -> default; subclasses extend it.
+    defaults: ClassVar[dict] = {}
+
+    def __init__(self, mesh: Mesh, material: Material | str | nn.Module | None, *, dtype: torch.dtype = torch.float32,
+                 differentiable: bool = False, progress: bool = False, **knobs) -> None:
+        t0 = time.perf_counter()
+        if not isinstance(mesh, Mesh):
+            raise TypeError(f"mesh: expected a torchsss Mesh, got {type(mesh).__name__}")
+        unknown = set(knobs) - set(self.defaults)
+        if unknown:
+            raise ValueError(f"{sorted(unknown)[0]}: expected a knob of method {self.method!r} "
+                             f"({', '.join(sorted(self.defaults))}), got an unknown one")
+        self.dtype = check_dtype(dtype)
+        self.differentiable = bool(differentiable)
+        self.progress = bool(progress)
+        self.knobs = {**self.defaults, **knobs}
+        self.mesh = mesh.with_dtype(self.dtype)
+        self.material = None if material is None and not self.needs_material else \
+            material_module(material, dtype=None if isinstance(material, nn.Module) else self.dtype)
+        self._build()
+        self.setup_s = time.perf_counter() - t0
+
+    @property
+    def eta(self) -> Tensor:
+        """The material module's relative index of refraction (the one home of eta), read every frame."""
+        if self.material is None:
+            raise ValueError(f"material: expected a translucent material for eta, got None (method {self.method!r})")
+        return self.material.eta
+
+    def _build(self) -> None:
+        """The setup (subclasses)."""
+
+    def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
+        raise NotImplementedError
+
+    def render(self, lights: Light | Sequence[Light], camera: Camera) -> RenderResult:
+        """Render one frame; ``stats`` gain ``method``, ``setup_s``, ``frame_s`` and ``knobs``.
+
+        Args:
+            lights: one light or a sequence of them (point, spot, directional; environment where supported).
+            camera: the viewing camera (its resolution is the image's).
+
+        Returns:
+            A :class:`RenderResult` (tensors of shape :math:`(1, 3, H, W)` and a :math:`(1, 1, H, W)` mask).
+        """
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
+        lights = check_lights(lights)
+        t0 = time.perf_counter()
+        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            result = self._render(lights, camera)
+        frame_s = time.perf_counter() - t0
+        result.stats.update(method=self.method, setup_s=self.setup_s, frame_s=frame_s, knobs=dict(self.knobs))
+        return result
+
+    def __repr__(self) -> str:
+        knobs = ", ".join(f"{k}={v!r}" for k, v in self.knobs.items())
+        return f"{type(self).__name__}({self.mesh.num_faces} faces, {knobs}; setup {self.setup_s:.2f} s)"
