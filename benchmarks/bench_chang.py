@@ -57,6 +57,7 @@ import torch
 
 from torchsss.bench import write_results
 from torchsss.geometry.atlas import build_atlas
+from torchsss.geometry.atlas_frame import camera_uv, irradiance_atlas
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.procedural import sphere
@@ -65,7 +66,6 @@ from torchsss.modules.material import DipoleMaterial
 from torchsss.ops.reference import reference_radiosity
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.pipelines.chang import ChangScene, render_icdf, sample_uniforms
-from torchsss.pipelines.lensch import _camera_uv, irradiance_atlas
 from torchsss.pipelines.reference import render_reference
 from torchsss.scene import Material, default_scene_path, load_scene
 
@@ -148,7 +148,7 @@ def prepare(label, mesh, material, lights, camera, *, atlas_res, spacing_mm=None
     gbuf = camera_gbuffer(mesh, camera)
     mask = gbuf.mask[0, 0]
     receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
-    uv, _ = _camera_uv(mesh, atlas, camera)
+    uv, _ = camera_uv(mesh, atlas, camera)
     rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
     cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
     print(f"[{label}] reference {camera.width}x{camera.height} {t_ref:.1f} s (spacing "

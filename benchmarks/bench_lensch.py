@@ -112,13 +112,14 @@ class Builder:
         atlas, t_a = self._get(("atlas", atlas_res, k), lambda: build_atlas(self.mesh, atlas_res, kernel_size=k))
         geom, t_g = self._get(("geom", atlas_res, k), lambda: local_kernel_geometry(atlas, k))
         weights, t_w = self._get(("weights", atlas_res, k), lambda: vertex_weights(self.mesh, atlas))
+        dip = DipoleMaterial(self.sa, self.ss, self.eta)
         tp, t_t = self._get(("tp", threshold, blend), lambda: build_throughput(
-            self.mesh, self.sa, self.ss, self.eta, threshold=threshold, relative=True, zero_diagonal=blend))
+            self.mesh, dip, threshold=threshold, relative=True, zero_diagonal=blend))
         direct = correction = None
         t_b = 0.0
         if blend:
             bw, t_b = self._get(("blend", atlas_res, k, threshold), lambda: blending_weights(
-                self.mesh, atlas, self.sa, self.ss, self.eta, kernel_size=k, threshold=threshold, relative=True))
+                self.mesh, atlas, dip, kernel_size=k, threshold=threshold, relative=True))
             direct, correction = bw.weights, bw.kernel_correction
         mat = DipoleMaterial(self.sa, self.ss, self.eta)
         if profile != "analytic":  # "lut<size>": the lookup-table speed path
@@ -237,7 +238,7 @@ def scaling(path: Path, face_counts, material: Material, threshold: float, atlas
         geom = local_kernel_geometry(atlas, k)
         weights = vertex_weights(mesh, atlas)
         t2 = time.perf_counter()
-        tp = build_throughput(mesh, sa, ss, eta, threshold=threshold, relative=True)
+        tp = build_throughput(mesh, DipoleMaterial(sa, ss, eta), threshold=threshold, relative=True)
         t3 = time.perf_counter()
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         tp_bytes = sum(t.numel() * t.element_size() for t in (tp.rows, tp.cols, tp.distance, tp.source_area))
@@ -298,10 +299,10 @@ def run_plane(material_name: str, *, size_mm=30.0, segments=30, square_mm=5.0, a
     t0 = time.perf_counter()
     atlas = build_atlas(mesh, atlas_res, kernel_size=kernel, use_mesh_uvs=True)
     mat = DipoleMaterial(sa, ss, eta)
-    tp = build_throughput(mesh, sa, ss, eta, threshold=threshold, relative=True, zero_diagonal=blend)
+    tp = build_throughput(mesh, mat, threshold=threshold, relative=True, zero_diagonal=blend)
     direct = correction = None
     if blend:
-        bw = blending_weights(mesh, atlas, sa, ss, eta, kernel_size=kernel, threshold=threshold, relative=True)
+        bw = blending_weights(mesh, atlas, mat, kernel_size=kernel, threshold=threshold, relative=True)
         direct, correction = bw.weights, bw.kernel_correction
     module = LenschTranslucency(LocalResponse(local_kernel_geometry(atlas, kernel), mat, correction=correction),
                                 GlobalResponse(vertex_weights(mesh, atlas), tp, mat, atlas.valid_mask),

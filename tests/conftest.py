@@ -24,6 +24,15 @@ def dtype(request) -> torch.dtype:
     return request.param
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """Small tensors: one intra-op thread is fastest (and far faster on a loaded, shared machine)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture
 def shared_dir() -> Path:
     """../shared next to the repository (tests may read its data)."""
@@ -70,3 +79,29 @@ class VsReference:
 def vs_reference() -> VsReference:
     """The shared accuracy scene (see :class:`VsReference`)."""
     return VsReference()
+
+
+def eta_edit_case(method: str, scene: VsReference, **knobs):
+    """Edit eta on a prebuilt renderer: (before, edited, fresh) radiance for eta 1.3 -> 1.6 (the one home of eta).
+
+    ``fresh`` is a new build with eta 1.6; ``edited`` the prebuilt renderer after its material module's eta was set
+    to 1.6 in place. Both Fresnel terms (irradiance and exit) and R_d must follow the edit.
+    """
+    import dataclasses
+
+    from torchsss.modules import DipoleMaterial
+    from torchsss.pipelines import build
+
+    r = build(method, scene.mesh, scene.material, **knobs)
+    before = r.render(scene.lights, scene.camera).radiance
+    with torch.no_grad():
+        r.material.raw_eta.copy_(DipoleMaterial(0.1, 1.0, 1.6).raw_eta.reshape(r.material.raw_eta.shape))
+    edited = r.render(scene.lights, scene.camera).radiance
+    fresh = build(method, scene.mesh, dataclasses.replace(scene.material, eta=1.6), **knobs)
+    return before, edited, fresh.render(scene.lights, scene.camera).radiance
+
+
+def rel_rmse(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Relative RMSE of ``a`` against ``b`` over the pixels where ``b`` is non-zero."""
+    m = b != 0
+    return float((a - b)[m].square().mean().sqrt() / b[m].square().mean().sqrt())

@@ -8,6 +8,7 @@ from torchsss import BurleyMaterial, DipoleMaterial
 from torchsss.physics import (
     ProfileTable,
     build_profile_table,
+    burley_cumulative,
     burley_params_from_dipole,
     burley_rd,
     dipole_rd,
@@ -132,7 +133,22 @@ def test_burley_matches_dipole_energy_and_module():
     assert_close(m.albedo, a, rtol=1e-9, atol=0)
     assert_close(m.s, s, rtol=1e-9, atol=0)
     r = torch.linspace(0.1, 5, 10, dtype=torch.float64).unsqueeze(-1)
-    assert_close(m(r), burley_rd(r, a, s), rtol=1e-9, atol=0)
+    exact = BurleyMaterial.from_preset("skin1", dtype=torch.float64, core=0.0)
+    assert_close(exact(r), burley_rd(r, a, s), rtol=1e-9, atol=0)
+    # the default core (radius 1/s) is the exact profile outside and its disk mean inside: same total energy
+    outside = r >= 1.0 / s
+    assert_close(m(r)[outside.expand(-1, 3)], burley_rd(r, a, s)[outside.expand(-1, 3)], rtol=1e-9, atol=0)
+    rho = (1.0 / s).unsqueeze(0)
+    mean = burley_cumulative(rho, a, s) / (math.pi * rho**2)
+    assert_close(m(torch.zeros(1, 1, dtype=torch.float64)), mean, rtol=1e-12, atol=0)
+    assert_close(m.cumulative(torch.full((1, 1), math.inf, dtype=torch.float64))[0], a, rtol=1e-12, atol=0)
+    # the core's cumulative is the quadrature of the evaluated profile (closed form against numbers)
+    rr = torch.linspace(0.0, 3.0, 30001, dtype=torch.float64).unsqueeze(-1)
+    f = m(rr) * 2.0 * math.pi * rr
+    quad = ((f[1:] + f[:-1]) * 0.5 * (rr[1:] - rr[:-1])).sum(0)
+    assert_close(quad, m.cumulative(torch.full((1, 1), 3.0, dtype=torch.float64))[0], rtol=1e-4, atol=0)
+    with pytest.raises(ValueError, match="core"):
+        BurleyMaterial([0.5], [1.0], core=-1.0)
     m(r).sum().backward()
     assert torch.isfinite(m.raw_albedo.grad).all() and torch.isfinite(m.raw_s.grad).all()
     with pytest.raises(ValueError, match="albedo"):

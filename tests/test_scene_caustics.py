@@ -61,7 +61,8 @@ def test_cli_renders_a_caustics_scene(tmp_path):
                  "--caustic-grid", "48"]) == 0
     assert (tmp_path / "glass.exr").is_file() and (tmp_path / "glass.png").is_file()
     summary = json.loads((tmp_path / "glass.json").read_text())
-    assert summary["method"] == "caustics" and summary["options"]["resolution"] == 48
+    assert summary["method"] == "caustics" and summary["options"]["grid"] == 48
+    assert summary["knobs"]["grid"] == 48 and summary["setup_s"] >= 0 and len(summary["frame_s"]) == 1
 
 
 def test_rescaled_scene_keeps_the_irradiance_at_corresponding_points():

@@ -13,13 +13,7 @@ F64 = torch.float64
 HALF = 20.0  # half width of the orthographic light frustum (mm)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """Small tensors: one intra-op thread is fastest (and far faster on a loaded, shared machine)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _view_proj(b: int = 1, dtype=F64) -> torch.Tensor:

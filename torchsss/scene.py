@@ -6,7 +6,9 @@ The format is DESIGN.md §5::
       "mesh": "spot",                 // a path (relative to the scene file) or a built-in name
       "size_mm": 40.0,                // bounding-box diagonal after centring (omit to keep the file's units)
       "material": "skin1",            // a Jensen 2001 preset, or
-                                      // {"sigma_a": [r, g, b], "sigma_s_prime": [r, g, b], "eta": 1.3} (mm^-1)
+                                      // {"sigma_a": [r, g, b], "sigma_s_prime": [r, g, b], "eta": 1.3} (mm^-1),
+                                      // optional "profile": "dipole" | "burley" | "tabulated"; or
+                                      // {"preset": "skin1", "profile": "burley"}
       "lights": [{"type": "point", "position": [x, y, z], "intensity": [r, g, b]}],
                                       // "directional": direction, irradiance; "spot": position, direction,
                                       // intensity, cone_deg, inner_deg; "environment" (Shah 6.4.2,

@@ -489,8 +489,9 @@ def throughput_values(tp: Throughput, profile: Callable[[Tensor], Tensor]) -> Te
     Examples:
         >>> from torchsss.geometry import sphere
         >>> from torchsss.physics import dipole_rd
-        >>> tp = build_throughput(sphere(10.0, 1), 0.01, 1.0)
-        >>> throughput_values(tp, lambda r: dipole_rd(r, torch.tensor([0.01]), 1.0)).shape[1]
+        >>> profile = lambda r: dipole_rd(r, torch.tensor([0.01]), 1.0)
+        >>> tp = build_throughput(sphere(10.0, 1), profile)
+        >>> throughput_values(tp, profile).shape[1]
         1
     """
     if not isinstance(tp, Throughput):

@@ -227,7 +227,9 @@ class HybridRenderer(IcdfRenderer):
 
 
 def _frame(cls: type[IcdfRenderer], mesh: Mesh, material, lights, camera, *, samples: int, dtype: torch.dtype,
-           progress: bool, prebuilt: IcdfRenderer | None, **knobs) -> RenderResult:
+           progress: bool, prebuilt: IcdfRenderer | ChangScene | None, **knobs) -> RenderResult:
+    if isinstance(prebuilt, ChangScene):
+        prebuilt = cls.from_built(prebuilt, **knobs)
     renderer = prebuilt or cls(mesh, material, dtype=dtype, progress=progress, samples=samples, **knobs)
     if prebuilt is not None:
         renderer.knobs.update(samples=samples, **{k: v for k, v in knobs.items() if k in ("seed", "sobol")})
@@ -238,12 +240,12 @@ def _frame(cls: type[IcdfRenderer], mesh: Mesh, material, lights, camera, *, sam
 
 def render_icdf(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
                 samples: int = 1024, dtype: torch.dtype = torch.float32, progress: bool = False,
-                prebuilt: IcdfRenderer | None = None, **knobs) -> RenderResult:
+                prebuilt: IcdfRenderer | ChangScene | None = None, **knobs) -> RenderResult:
     """Render one frame with Chang's texture-space importance sampling (``samples`` = N); see :class:`IcdfRenderer`.
 
     ``stats`` separate ``setup_s`` (atlas) from ``frame_s`` (irradiance atlas + sampling + sum). ``prebuilt``
-    reuses an :class:`IcdfRenderer` (relighting, new views, material edits on its ``material``; ``samples``,
-    ``seed`` and ``sobol`` may change per frame).
+    reuses an :class:`IcdfRenderer` or a :func:`build_icdf` result (relighting, new views, material edits on its
+    ``material``; ``samples``, ``seed`` and ``sobol`` may change per frame).
     """
     return _frame(IcdfRenderer, mesh, material, lights, camera, samples=samples, dtype=dtype, progress=progress,
                   prebuilt=prebuilt, **knobs)
@@ -251,7 +253,7 @@ def render_icdf(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Lig
 
 def render_hybrid(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
                   samples: int = 1024, dtype: torch.dtype = torch.float32, progress: bool = False,
-                  prebuilt: HybridRenderer | None = None, **knobs) -> RenderResult:
+                  prebuilt: HybridRenderer | ChangScene | None = None, **knobs) -> RenderResult:
     """Render one frame with Chang's hybrid (see :class:`HybridRenderer`)."""
     return _frame(HybridRenderer, mesh, material, lights, camera, samples=samples, dtype=dtype, progress=progress,
                   prebuilt=prebuilt, **knobs)

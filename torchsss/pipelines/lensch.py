@@ -113,6 +113,12 @@ class LenschRenderer(Renderer):
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
                                     blend=None, shadow_resolution=1024, specular=False, roughness=0.3)
 
+    @classmethod
+    def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
+        """A renderer around an existing :func:`build_lensch` result (no new setup)."""
+        fixed = {"kernel_size": int(built.module.local.kernel_size), "blend": built.module.direct is not None}
+        return super().from_built(built, **{**knobs, **fixed})
+
     def _build(self) -> None:
         k = self.knobs
         self.built = build_lensch(self.mesh, self.material, resolution=k["atlas_resolution"],
@@ -146,13 +152,15 @@ class LenschRenderer(Renderer):
 
 def render_lensch(mesh: Mesh, material: Material | nn.Module, lights: Sequence[Light], camera: Camera, *,
                   resolution: int = 512, dtype: torch.dtype = torch.float32, progress: bool = False,
-                  prebuilt: LenschRenderer | None = None, **knobs) -> RenderResult:
+                  prebuilt: LenschRenderer | LenschScene | None = None, **knobs) -> RenderResult:
     """Render one frame with the Lensch method; ``stats`` separate ``setup_s`` and ``frame_s``.
 
     ``resolution`` is the atlas resolution (the ``atlas_resolution`` knob of :class:`LenschRenderer`); other knobs
     as there. ``prebuilt`` reuses a :class:`LenschRenderer` (relighting, new views, material edits on its
     ``material``).
     """
+    if isinstance(prebuilt, LenschScene):
+        prebuilt = LenschRenderer.from_built(prebuilt, **knobs)
     renderer = prebuilt or LenschRenderer(mesh, material, dtype=dtype, progress=progress,
                                           atlas_resolution=resolution, **knobs)
     res = renderer.render(lights, camera)

@@ -121,6 +121,22 @@ class Renderer:
         self._build()
         self.setup_s = time.perf_counter() - t0
 
+    @classmethod
+    def from_built(cls, built, **knobs) -> Renderer:
+        """A renderer around an existing build result (``mesh``, ``atlas``, ``module``, ``stats``): no new setup.
+
+        For the atlas methods' ``build_*`` functions (``build_lensch``, ``build_icdf``, ``build_hybrid``).
+        """
+        self = cls.__new__(cls)
+        self.dtype = built.mesh.vertices.dtype
+        self.differentiable = False
+        self.progress = False
+        self.knobs = {**cls.defaults, **knobs}
+        self.mesh, self.built, self.atlas, self.module = built.mesh, built, built.atlas, built.module
+        self.material = built.module.material
+        self.setup_s = float(built.stats.get("t_precompute_s", 0.0))
+        return self
+
     @property
     def eta(self) -> Tensor:
         """The material module's relative index of refraction (the one home of eta), read every frame."""

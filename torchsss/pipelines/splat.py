@@ -305,8 +305,8 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material | nn.Module]], l
     dst_object = object_ids(gbuf.face_id, face_object)
     masks = object_masks(dst_object, len(objects))
     view_proj = camera.view_proj(dtype=dtype, device=device)
-    etas = sorted({float(mat.eta) for mat in materials})
-    obj_eta = torch.tensor([float(mat.eta) for mat in materials], dtype=dtype, device=device)
+    etas = sorted({float(mat.eta.detach()) for mat in materials})
+    obj_eta = torch.tensor([float(mat.eta.detach()) for mat in materials], dtype=dtype, device=device)
     pos, flux, obj = [], [], []
     for light in lights:
         views = [_light_sources(merged, light, n, e, peel_layers) for e in etas]  # the same points, per eta

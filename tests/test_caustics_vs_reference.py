@@ -29,13 +29,7 @@ F64 = torch.float64
 DOWN = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=F64)  # directional light, from +z (direction *towards* it)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """Small tensors: one intra-op thread is fastest (and far faster on a loaded, shared machine)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # -- analytic scene ------------------------------------------------------------------------------------------------
