@@ -11,7 +11,7 @@ import torch
 from torchsss.pipelines import build
 
 #: relative RMSE bounds at atlas 128 and N = 8192 on the shared 16 mm sphere (measured: dipole 3.6%, tabulated
-#: 3.6%, Burley 3.0%)
+#: 3.6%, Burley 2.9%)
 BOUNDS = {"dipole": 0.055, "tabulated": 0.055, "burley": 0.055}
 
 

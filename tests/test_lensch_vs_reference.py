@@ -12,7 +12,8 @@ from torchsss.pipelines.lensch import render_lensch
 from torchsss.pipelines.reference import render_reference
 from torchsss.scene import Material
 
-#: relative RMSE bounds at atlas 128 (kernel and blending planned) on the shared 16 mm sphere
+#: relative RMSE bounds at atlas 128 (kernel and blending planned) on the shared 16 mm sphere (measured: dipole 5.0%,
+#: tabulated 5.0%, Burley 4.5%)
 BOUNDS = {"dipole": 0.07, "tabulated": 0.07, "burley": 0.07}
 
 
