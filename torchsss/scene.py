@@ -170,6 +170,14 @@ def _resolve_mesh(mesh: str, base_dir: Path, name: str) -> str:
     return str(path)
 
 
+def _load(source: str, key: str, size_mm: float | None, decimate: int | None, dtype: torch.dtype) -> Mesh:
+    """load_mesh with its errors prefixed by the scene key that named the file (``scene.mesh``, ...)."""
+    try:
+        return load_mesh(source, size_mm, decimate_to=decimate, dtype=dtype)
+    except (ValueError, FileNotFoundError) as err:
+        raise ValueError(f"{key}: {err}") from err
+
+
 @dataclass(frozen=True)
 class SceneObject:
     """One entry of a scene's ``"objects"`` list: a mesh, its size and material, and a translation (mm)."""
@@ -218,8 +226,8 @@ class SceneObject:
             (4.226, 15.774)
         """
         base = Path(base_dir) if base_dir is not None else Path.cwd()
-        mesh = load_mesh(_resolve_mesh(self.mesh, base, f"{name}.mesh"), self.size_mm,
-                         decimate_to=self.decimate, dtype=dtype)
+        mesh = _load(_resolve_mesh(self.mesh, base, f"{name}.mesh"), f"{name}.mesh", self.size_mm, self.decimate,
+                     dtype)
         if any(self.translate):
             mesh = dataclasses.replace(mesh, vertices=mesh.vertices + mesh.vertices.new_tensor(self.translate))
         return mesh
@@ -383,7 +391,7 @@ class Scene:
         if self.mesh is None:
             raise ValueError('scene: expected a single-object scene ("mesh") for load_mesh, got one with "objects" '
                              "(use Scene.load_objects)")
-        return load_mesh(self.mesh_source(), self.size_mm, decimate_to=self.decimate, dtype=dtype)
+        return _load(self.mesh_source(), "scene.mesh", self.size_mm, self.decimate, dtype)
 
     def load_objects(self, dtype: torch.dtype = torch.float32) -> list[tuple[Mesh, Material]]:
         """``(mesh, material)`` of every object, translated into place (one entry for a single-object scene).

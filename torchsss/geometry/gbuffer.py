@@ -127,6 +127,12 @@ def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, in
 def _check_in_front(mesh: Mesh, cam: Camera) -> None:
     view = cam.view_matrix(dtype=torch.float64, device=mesh.vertices.device)
     depth = -transform_points(mesh.vertices.double(), view)[..., 2]
+    if float(depth.max()) <= 0.0:
+        raise ValueError(
+            f"camera: expected the mesh in front of the camera, got every vertex behind it (view depths "
+            f"{float(depth.min()):.3f} to {float(depth.max()):.3f} mm: the camera looks away from the object); point "
+            f"'target' at the object (eye {cam.eye}, target {cam.target})"
+        )
     if float(depth.min()) < cam.near:
         raise ValueError(
             f"camera: expected the mesh entirely beyond the near plane ({cam.near} mm), got a vertex at view depth "

@@ -73,7 +73,11 @@ def _procedural(name: str, dtype: torch.dtype) -> Mesh:
 
 
 def _read(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    loaded = trimesh.load(str(path), force="mesh", process=False)
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as err:  # trimesh raises many kinds (KeyError, ValueError, ImportError of a codec, ...)
+        raise ValueError(f"source: expected a readable mesh file (OBJ, PLY, STL, GLB, OFF), got {path} that "
+                         f"trimesh cannot read: {type(err).__name__}: {err}") from err
     if not isinstance(loaded, trimesh.Trimesh):
         raise ValueError(f"source: expected a file holding triangle geometry, got {type(loaded).__name__} ({path})")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)

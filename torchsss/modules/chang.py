@@ -237,6 +237,10 @@ class ImportanceSampledTranslucency(nn.Module):
         b, n = dims["B"], dims["N"]
         h, w = self.shape
         ep = self.weighted_irradiance(irradiance)
+        if not is_tracing() and not bool(torch.isfinite(ep.sum())):
+            raise ValueError(f"irradiance: expected values whose area-weighted sum is finite in {ep.dtype}, got an "
+                             f"overflow (max irradiance {float(irradiance.max()):.3g}); rescale the light intensity "
+                             "or use float64")
         if pdf is None:
             pdf = ep.sum(1, keepdim=True)
         else:

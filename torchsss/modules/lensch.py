@@ -352,6 +352,9 @@ class LenschTranslucency(nn.Module):
 
     def forward(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` radiosity atlas."""
+        check_tensor(irradiance, "irradiance")
+        h, w = self.local.distance.shape[:2]
+        check_shape(irradiance, "irradiance", "B,C,H,W", H=h, W=w)
         g = self.global_response
         vert = g.vertex_radiosity(irradiance)
         if self.direct is not None:
