@@ -9,7 +9,7 @@ need to look at tensor data are skipped while a graph is being traced, compiled 
 from __future__ import annotations
 
 import numbers
-from collections.abc import Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -17,6 +17,8 @@ from torch import Tensor
 __all__ = [
     "as_float_tensor",
     "check_broadcastable",
+    "check_devices",
+    "check_finite",
     "check_nonnegative",
     "check_positive",
     "check_shape",
@@ -24,6 +26,7 @@ __all__ = [
     "compute_dtype",
     "is_exporting",
     "is_tracing",
+    "skip_value_checks",
 ]
 
 _REDUCED = (torch.float16, torch.bfloat16)
@@ -48,13 +51,68 @@ def is_exporting() -> bool:
     return bool(torch.jit.is_tracing() or torch.compiler.is_exporting() or torch.onnx.is_in_onnx_export())
 
 
+def skip_value_checks(*tensors: object) -> bool:
+    """True where checks that read tensor data must not run.
+
+    That is while tracing, compiling or exporting, or when one of ``tensors`` lives on the meta device (shapes
+    and dtypes only, no data: ``.item()`` would raise).
+    """
+    return is_tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
+
+
 def check_tensor(x: object, name: str) -> Tensor:
-    """Return ``x`` if it is a floating-point tensor, else raise TypeError naming ``name``."""
+    """Return ``x`` if it is a real floating-point tensor, else raise TypeError naming ``name``."""
     if not isinstance(x, Tensor):
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if x.is_complex():
+        raise TypeError(f"{name}: expected a real floating-point tensor, got complex dtype {x.dtype}")
     if not x.is_floating_point():
         raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
     return x
+
+
+def check_devices(
+    tensors: Mapping[str, object], *, floating: bool | Collection[str] = (), allow_meta: bool = True
+) -> torch.device | None:
+    """Check that the tensors of one call share one device; return it (None without tensors).
+
+    Call it first, before anything reads tensor data (host synchronisation), so that mixed devices fail with a
+    clear message instead of inside torch. ``tensors`` maps argument names to the arguments, in the order they
+    are checked; ``None`` and non-tensor entries are skipped (unless named in ``floating``). Names in
+    ``floating`` (``True``: every entry) must be real floating-point tensors (:func:`check_tensor`). Tensors on
+    the meta device carry no data: with ``allow_meta=False`` (ops whose eager path reads values) they raise;
+    otherwise the caller skips its value checks (:func:`skip_value_checks`).
+
+    Raises:
+        TypeError: a ``floating`` entry that is not a real floating-point tensor (named).
+        ValueError: a tensor on another device than the first tensor (both named, both devices), or on the
+            meta device when ``allow_meta`` is False.
+
+    Examples:
+        >>> check_devices({"a": torch.zeros(2), "b": None, "c": torch.ones(1)}, floating=True)
+        device(type='cpu')
+        >>> check_devices({"a": torch.zeros(2), "b": torch.zeros(2, device="meta")})
+        Traceback (most recent call last):
+        ...
+        ValueError: b: expected a tensor on a's device cpu, got one on meta
+    """
+    first: tuple[str, torch.device] | None = None
+    for name, x in tensors.items():
+        if floating is True or (not isinstance(floating, bool) and name in floating):
+            if x is not None:
+                check_tensor(x, name)
+        if not isinstance(x, Tensor):
+            continue
+        if first is None:
+            first = (name, x.device)
+        elif x.device != first[1]:
+            raise ValueError(f"{name}: expected a tensor on {first[0]}'s device {first[1]}, got one on {x.device}")
+        if not allow_meta and x.device.type == "meta":
+            raise ValueError(
+                f"{name}: expected a tensor with data (cpu, cuda, ...), got one on the meta device "
+                "(this op reads tensor values)"
+            )
+    return None if first is None else first[1]
 
 
 def as_float_tensor(x: object, name: str, like: Tensor | None = None) -> Tensor:
@@ -97,14 +155,41 @@ def check_broadcastable(**tensors: Tensor) -> torch.Size:
 
 
 def _report(x: Tensor, bad: Tensor, name: str, expected: str) -> None:
+    """Raise ValueError naming ``name``, the first bad value, its index and the count, if ``bad`` has a True entry."""
     if bool(bad.any()):
         first = x.detach()[bad].flatten()[0].item()
-        raise ValueError(f"{name}: expected {expected}, got {first!r} ({int(bad.sum())} of {x.numel()} entries bad)")
+        where = ""
+        if bad.dim() > 0:
+            flat = int(bad.flatten().nonzero()[0, 0])
+            index = tuple(int(i) for i in torch.unravel_index(torch.tensor(flat), tuple(bad.shape)))
+            where = f", the first at index {index}"
+        raise ValueError(
+            f"{name}: expected {expected}, got {first!r} ({int(bad.sum())} of {x.numel()} entries bad{where})"
+        )
+
+
+def check_finite(x: Tensor, name: str) -> None:
+    """Raise ValueError if ``x`` holds a NaN or infinite entry (naming the first and its index).
+
+    Skipped while tracing and on the meta device.
+
+    Examples:
+        >>> check_finite(torch.tensor([[1.0, float("nan")]]), "src_pos")
+        Traceback (most recent call last):
+        ...
+        ValueError: src_pos: expected finite values, got nan (1 of 2 entries bad, the first at index (0, 1))
+    """
+    if skip_value_checks(x):
+        return
+    _report(x, ~torch.isfinite(x), name, "finite values")
 
 
 def check_nonnegative(x: Tensor, name: str, allow_inf: bool = False) -> None:
-    """Raise ValueError if ``x`` holds a negative, NaN (or, unless allowed, infinite) entry; skipped while tracing."""
-    if is_tracing():
+    """Raise ValueError if ``x`` holds a negative, NaN (or, unless allowed, infinite) entry.
+
+    Skipped while tracing and on the meta device.
+    """
+    if skip_value_checks(x):
         return
     bad = torch.isnan(x) | (x < 0)
     if not allow_inf:
@@ -113,8 +198,11 @@ def check_nonnegative(x: Tensor, name: str, allow_inf: bool = False) -> None:
 
 
 def check_positive(x: Tensor, name: str) -> None:
-    """Raise ValueError if ``x`` holds an entry that is <= 0, NaN or infinite; skipped while tracing."""
-    if is_tracing():
+    """Raise ValueError if ``x`` holds an entry that is <= 0, NaN or infinite.
+
+    Skipped while tracing and on the meta device.
+    """
+    if skip_value_checks(x):
         return
     _report(x, ~torch.isfinite(x) | (x <= 0), name, "finite values > 0")
 

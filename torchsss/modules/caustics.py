@@ -60,7 +60,16 @@ import torch
 from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
-from torchsss._checks import as_float_tensor, check_positive, check_shape, check_tensor, is_tracing
+from torchsss._checks import (
+    as_float_tensor,
+    check_devices,
+    check_finite,
+    check_positive,
+    check_shape,
+    check_tensor,
+    is_tracing,
+    skip_value_checks,
+)
 from torchsss.modules.search import NewtonRaphsonSearch
 from torchsss.ops.caustic_splat import default_kernel_size, splat_caustics
 from torchsss.ops.newton_raphson import lookup_positions
@@ -87,7 +96,13 @@ def _channels(value: object, name: str, positive: bool) -> Tensor:
 
 
 def _unit(v: Tensor) -> Tensor:
-    """Unit vectors over the last axis; zero vectors stay zero (finite gradients)."""
+    """Unit vectors over the last axis; zero vectors stay zero (finite gradients).
+
+    Scale-safe, as :func:`~torchsss.ops.refraction.refract`: divided by the largest absolute component before the
+    norm, so normals of any non-zero length work (``sum(v * v)`` underflows near 1e-20 in float32).
+    """
+    m = v.abs().amax(-1, keepdim=True)
+    v = v / torch.where(m > 0, m, torch.ones_like(m))
     n2 = (v * v).sum(-1, keepdim=True)
     return v / torch.sqrt(torch.where(n2 > 0, n2, torch.ones_like(n2)))
 
@@ -125,7 +140,9 @@ class CausticMap(nn.Module):
             reflected borders; 0 = off), the smoothing Shah applies against splat gaps.
 
     Raises:
-        TypeError, ValueError: options of the wrong type or out of range (naming the option).
+        TypeError, ValueError: options of the wrong type or out of range (naming the option). ``forward`` raises
+            TypeError/ValueError naming the input for non-tensor, non-floating or complex inputs, inputs on
+            different devices, wrong shapes, and (in eager mode) a non-finite ``light`` or ``intensity``.
 
     Examples:
         >>> m = CausticMap(ior=[1.50, 1.52, 1.54], absorption=0.01)
@@ -218,6 +235,8 @@ class CausticMap(nn.Module):
                 raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
             if x.is_complex():
                 raise TypeError(f"{name}: expected a bool or real tensor, got dtype {x.dtype}")
+        # devices before anything reads tensor data (the masks included)
+        check_devices({**dict(named), "front_mask": front_mask, "back_mask": back_mask})
         if is_tracing():
             return
         dims = check_shape(front_position, "front_position", "B,3,H,W")
@@ -233,15 +252,15 @@ class CausticMap(nn.Module):
         for name, buf in (("ior", self.ior), ("absorption", self.absorption)):
             if buf.numel() not in (1, c):
                 raise ValueError(f"intensity: expected C = 1 or C = {name}'s {buf.numel()} channels, got C = {c}")
+        if skip_value_checks(light, intensity, view_proj):
+            return
         if not bool(torch.isfinite(light).all()):
             raise ValueError("light: expected finite values, got a non-finite entry")
         if not bool(((light[:, 3] == 0) | (light[:, 3] == 1)).all()):
             raise ValueError(f"light: expected w = 0 (directional) or 1 (point), got {light[:, 3].tolist()}")
         check_positive(view_proj.abs().sum((-2, -1)), "view_proj")
-        for name, x in named:
-            if x.device != front_position.device:
-                raise ValueError(f"{name}: expected a tensor on front_position's device {front_position.device}, "
-                                 f"got {x.device}")
+        # a NaN intensity would silently give an all-zero map (the splat drops non-finite flux)
+        check_finite(intensity, "intensity")
 
     # -- forward -------------------------------------------------------------------------------------------------
     def forward(
@@ -271,7 +290,7 @@ class CausticMap(nn.Module):
                 refractor not rendered into it); non-finite texels hold no receiver. Sets the map's size.
             light: :math:`(B, 4)` homogeneous light: ``(x, y, z, 1)`` a point light at xyz (mm), ``(dx, dy, dz,
                 0)`` a directional light, xyz the unit direction *towards* the light.
-            intensity: :math:`(B, C)` radiant intensity of a point light or perpendicular irradiance of a
+            intensity: :math:`(B, C)` finite radiant intensity of a point light or perpendicular irradiance of a
                 directional one (``flux="shah"``: Shah's :math:`I_0`).
             view_proj: :math:`(B, 4, 4)` world-to-clip matrix of the light view that rendered all the textures
                 (its lines of sight must pass through the point light / run along the directional light).

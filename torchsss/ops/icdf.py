@@ -20,7 +20,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchsss._checks import _report, check_nonnegative, check_tensor, compute_dtype, is_tracing
+from torchsss._checks import (
+    _report,
+    check_devices,
+    check_nonnegative,
+    check_tensor,
+    compute_dtype,
+    is_tracing,
+    skip_value_checks,
+)
 
 __all__ = ["icdf_sample", "icdf_sample_reference", "pyramid_levels", "sum_pyramid"]
 
@@ -88,7 +96,7 @@ def _check_u(u: object, b: int) -> None:
     if u.shape[0] != b:
         raise ValueError(f"u: expected shape (B, N, 2) with B={b} (pdf's batch), got {tuple(u.shape)}")
     # fast check first (NaN propagates through amin/amax and fails both comparisons), then the detailed message
-    if not is_tracing() and u.numel() and not (bool(u.amin() >= 0) and bool(u.amax() < 1)):
+    if not skip_value_checks(u) and u.numel() and not (bool(u.amin() >= 0) and bool(u.amax() < 1)):
         _report(u, ~((u >= 0) & (u < 1)), "u", "values in [0, 1)")
 
 
@@ -322,10 +330,11 @@ def icdf_sample(pdf: Tensor, u: Tensor, levels: int | None = None) -> tuple[Tens
         unit pixel area, ``pdf[texel] / pdf.sum()`` (0 for an all-zero map). Promoted dtype, ``pdf``'s device.
 
     Raises:
-        TypeError: a non-tensor or non-floating ``pdf``/``u``; a non-int ``levels``.
-        ValueError: ``pdf`` not :math:`(B, 1, H, W)`, empty, negative, NaN or infinite; ``u`` not
-            :math:`(B, N, 2)` with the same ``B`` or outside :math:`[0, 1)`; ``levels`` too small or above 15.
-            Value checks are skipped while tracing/exporting.
+        TypeError: a non-tensor, non-floating or complex ``pdf``/``u``; a non-int ``levels``.
+        ValueError: ``pdf`` and ``u`` on different devices; ``pdf`` not :math:`(B, 1, H, W)`, empty, negative,
+            NaN or infinite; ``u`` not :math:`(B, N, 2)` with the same ``B`` or outside :math:`[0, 1)`;
+            ``levels`` too small or above 15. Value checks are skipped while tracing/exporting and on the meta
+            device (which gives the outputs' shapes).
 
     Examples:
         >>> pdf = torch.tensor([[[[0.0, 3.0], [1.0, 0.0]]]])
@@ -337,6 +346,7 @@ def icdf_sample(pdf: Tensor, u: Tensor, levels: int | None = None) -> tuple[Tens
         >>> p
         tensor([[0.7500, 0.2500]])
     """
+    check_devices({"pdf": pdf, "u": u}, floating=True)  # first: before anything reads the data
     b, _, _, levels = _check_pdf(pdf, levels, values=False)
     _check_u(u, b)
     out_dtype, dtype = compute_dtype(pdf, u)
@@ -345,7 +355,7 @@ def icdf_sample(pdf: Tensor, u: Tensor, levels: int | None = None) -> tuple[Tens
     x = pdf.to(dtype)[:, 0]
     amax = x.amax(dim=(-2, -1), keepdim=True)
     # fast value check (NaN propagates through amax/amin); the detailed message comes from check_nonnegative
-    if not is_tracing() and x.numel() and not (bool(x.amin() >= 0) and bool(torch.isfinite(amax).all())):
+    if not skip_value_checks(x) and x.numel() and not (bool(x.amin() >= 0) and bool(torch.isfinite(amax).all())):
         check_nonnegative(pdf, "pdf")
     empty = (amax <= 0).to(dtype)  # (B, 1, 1): all-zero map -> uniform over the H x W region, p = 0
     base = _normalised_base(x, amax, empty, size)
@@ -396,7 +406,7 @@ def icdf_sample_reference(pdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         ``(xy, p)`` as :func:`icdf_sample`.
 
     Raises:
-        TypeError, ValueError: as :func:`icdf_sample`.
+        TypeError, ValueError: as :func:`icdf_sample`; also ValueError on the meta device (the search needs data).
 
     Examples:
         >>> pdf = torch.tensor([[[[0.0, 3.0], [1.0, 0.0]]]])
@@ -407,6 +417,7 @@ def icdf_sample_reference(pdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         >>> p
         tensor([[0.7500, 0.2500]])
     """
+    check_devices({"pdf": pdf, "u": u}, floating=True, allow_meta=False)
     b, h, w, _ = _check_pdf(pdf, None)
     _check_u(u, b)
     out_dtype, _ = compute_dtype(pdf, u)

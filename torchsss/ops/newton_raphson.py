@@ -69,7 +69,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchsss._checks import check_shape, check_tensor, compute_dtype, is_tracing
+from torchsss._checks import check_shape, check_tensor, compute_dtype, is_tracing, skip_value_checks
 
 __all__ = ["lookup_positions", "newton_raphson_intersect"]
 
@@ -107,7 +107,7 @@ def _check_common(positions_texture: object, view_proj: object, rays: list[tuple
             raise ValueError(
                 f"{name}: expected a tensor on positions_texture's device {positions_texture.device}, got {x.device}"
             )
-    if not is_tracing() and not bool(torch.isfinite(view_proj).all()):
+    if not skip_value_checks(view_proj) and not bool(torch.isfinite(view_proj).all()):
         raise ValueError("view_proj: expected finite values, got a non-finite entry")
 
 
@@ -275,8 +275,9 @@ def newton_raphson_intersect(
 
     Args:
         origins: :math:`(B, N, 3)` ray origins in world space (mm), e.g. refractor points seen from the light.
-        directions: :math:`(B, N, 3)` ray directions (any non-zero length; normalised inside), e.g. from
-            :func:`torchsss.ops.refraction.refract`. Zero vectors give invalid rays.
+        directions: :math:`(B, N, 3)` ray directions (any non-zero finite length, subnormal to near the float
+            maximum; normalised scale-safely inside), e.g. from :func:`torchsss.ops.refraction.refract`. Zero
+            vectors give invalid rays.
         positions_texture: :math:`(B, 3, H, W)` receiver world position per light texel (row 0 at the top);
             non-finite texels (NaN, inf) hold no receiver.
         view_proj: :math:`(B, 4, 4)` or :math:`(4, 4)` world-to-clip matrix of the light that rendered the texture.
@@ -328,8 +329,12 @@ def newton_raphson_intersect(
     # -- rays: sanitise so that nothing non-finite enters the loop -------------------------------------------------
     o = origins.to(work)
     r = directions.to(work)
+    # scale-safe normalisation: divide by the largest absolute component first, so that |r|^2 lies in [1, 3]
+    # (summing squares directly underflows to 0 near 1e-20 and overflows to inf near 1e20 in float32)
+    r_max = r.abs().amax(-1)
+    ray_ok = torch.isfinite(o).all(-1) & torch.isfinite(r).all(-1) & (r_max > 0)
+    r = r / torch.where(ray_ok, r_max, torch.ones_like(r_max))[..., None]
     r2 = (r * r).sum(-1)
-    ray_ok = torch.isfinite(o).all(-1) & torch.isfinite(r).all(-1) & (r2 > 0) & torch.isfinite(r2)
     o = torch.where(ray_ok[..., None], o, torch.zeros_like(o))
     r = r / torch.sqrt(torch.where(ray_ok, r2, torch.ones_like(r2)))[..., None]
     r = torch.where(ray_ok[..., None], r, torch.full_like(r, 3.0**-0.5))

@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchsss._checks import check_nonnegative, check_shape, check_tensor
+from torchsss._checks import check_devices, check_finite, check_nonnegative, check_shape, check_tensor
 
 __all__ = ["pairwise_distance", "reference_radiosity"]
 
@@ -18,7 +18,9 @@ DEFAULT_MAX_PAIRS = 1 << 21
 def pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
     """Exact Euclidean distances :math:`|a_m - b_n|` from coordinate differences (no Gram-matrix cancellation).
 
-    The gradient is defined as 0 where two points coincide (the norm is not differentiable there).
+    The gradient is defined as 0 where two points coincide (the norm is not differentiable there). NaN in gives
+    NaN out: a pair with a NaN coordinate (or an infinite one on both sides) has a NaN distance, never a
+    plausible 0.
 
     Args:
         a: :math:`(B, M, 3)` points.
@@ -30,11 +32,15 @@ def pairwise_distance(a: Tensor, b: Tensor) -> Tensor:
     Examples:
         >>> pairwise_distance(torch.zeros(1, 1, 3), torch.tensor([[[3.0, 4.0, 0.0]]])).flatten().tolist()
         [5.0]
+        >>> pairwise_distance(torch.zeros(1, 1, 3), torch.tensor([[[float("nan"), 0.0, 0.0]]])).flatten().tolist()
+        [nan]
     """
     diff = a.unsqueeze(2) - b.unsqueeze(1)
     sq = (diff * diff).sum(-1, keepdim=True)
     pos = sq > 0
-    return torch.where(pos, torch.sqrt(torch.where(pos, sq, torch.ones_like(sq))), torch.zeros_like(sq))
+    # not-positive entries are 0 (coincident points, zero gradient) or NaN: sq * 0 keeps the NaN (a comparison
+    # with NaN is False, so a zeros_like here would turn a NaN distance into 0)
+    return torch.where(pos, torch.sqrt(torch.where(pos, sq, torch.ones_like(sq))), sq * 0)
 
 
 def reference_radiosity(
@@ -77,8 +83,11 @@ def reference_radiosity(
         :math:`(B, M, C)` radiosity :math:`B(x_o)` (multiply by :math:`F_t/\\pi` for radiance).
 
     Raises:
-        TypeError: non-tensor or non-floating inputs, non-integer ids.
-        ValueError: shapes that disagree (the message names the argument), negative areas, bad ``max_pairs``.
+        TypeError: non-tensor, non-floating or complex inputs, non-integer ids.
+        ValueError: inputs on different devices, shapes that disagree (the message names the argument), NaN or
+            infinite positions, irradiances, areas or modifiers (naming the input and the first bad index),
+            negative areas, bad ``max_pairs``. The value checks are skipped while tracing and on the meta device
+            (which gives the output's shape).
 
     Examples:
         >>> from functools import partial
@@ -89,16 +98,23 @@ def reference_radiosity(
         >>> b.shape
         torch.Size([1, 10, 1])
     """
-    for name, t in (("src_pos", src_pos), ("src_irradiance", src_irradiance), ("src_area", src_area),
-                    ("dst_pos", dst_pos)):
-        check_tensor(t, name)
+    check_devices(
+        {"src_pos": src_pos, "src_irradiance": src_irradiance, "src_area": src_area, "dst_pos": dst_pos,
+         "src_distance_scale": src_distance_scale, "src_irradiance_scale": src_irradiance_scale,
+         "src_ids": src_ids, "dst_ids": dst_ids},
+        floating=("src_pos", "src_irradiance", "src_area", "dst_pos", "src_distance_scale", "src_irradiance_scale"),
+    )
     dims = check_shape(src_pos, "src_pos", "B,N,3")
     dims = check_shape(src_irradiance, "src_irradiance", "B,N,C", **dims)
+    area_in = src_area
     if src_area.dim() == 2:
         src_area = src_area.unsqueeze(-1)
     check_shape(src_area, "src_area", "B,N,1", **dims)
     dims = check_shape(dst_pos, "dst_pos", "B,M,3", **dims)
-    check_nonnegative(src_area, "src_area")
+    check_finite(src_pos, "src_pos")
+    check_finite(src_irradiance, "src_irradiance")
+    check_nonnegative(area_in, "src_area")
+    check_finite(dst_pos, "dst_pos")
     c = dims["C"]
     weight = src_irradiance * src_area
     if src_irradiance_scale is not None:
@@ -107,6 +123,7 @@ def reference_radiosity(
             raise ValueError(f"src_irradiance_scale: expected shape (B, N, 1) or (B, N, {c}), "
                              f"got {tuple(src_irradiance_scale.shape)}")
         check_shape(src_irradiance_scale, "src_irradiance_scale", f"B,N,{src_irradiance_scale.shape[-1]}", **dims)
+        check_finite(src_irradiance_scale, "src_irradiance_scale")
         weight = weight * src_irradiance_scale
     if src_distance_scale is not None:
         check_tensor(src_distance_scale, "src_distance_scale")
@@ -114,6 +131,7 @@ def reference_radiosity(
             raise ValueError(f"src_distance_scale: expected shape (B, N, 1) or (B, N, {c}), "
                              f"got {tuple(src_distance_scale.shape)}")
         check_shape(src_distance_scale, "src_distance_scale", f"B,N,{src_distance_scale.shape[-1]}", **dims)
+        check_finite(src_distance_scale, "src_distance_scale")
     if (src_ids is None) != (dst_ids is None):
         raise ValueError("src_ids, dst_ids: expected both or neither, got only one")
     if src_ids is not None:

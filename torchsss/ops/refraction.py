@@ -12,7 +12,11 @@ Conventions shared by :func:`refract` and :func:`reflect`:
   *transmitted* side: light entering water from air has ``eta = 1 / 1.33``, light leaving glass into air
   ``eta = 1.5``. (This is the reciprocal of the material-over-outside ``eta`` of :mod:`torchsss.physics.fresnel`
   for light entering a material.)
-* Zero-length ``incident`` or ``normal`` vectors give a zero direction (never NaN), with ``tir`` False.
+* Any non-zero length works, from subnormal to near the float maximum: vectors are divided by their largest
+  absolute component before the norm is taken, so :math:`|v|^2` neither underflows to 0 nor overflows to inf.
+* Zero-length ``incident`` or ``normal`` vectors have no direction: they give the zero direction (never NaN)
+  with ``tir`` False, which no real result has (a refracted direction has unit length, a TIR one is flagged),
+  so ``~tir & (direction == 0).all(-1)`` finds them. Non-finite vectors give NaN directions.
 """
 
 from __future__ import annotations
@@ -33,10 +37,17 @@ def _check_vectors(x: object, name: str) -> Tensor:
 
 
 def _normalize(v: Tensor) -> tuple[Tensor, Tensor]:
-    """Unit vectors along ``v`` (zero where ``|v| = 0``, with finite gradients) and the mask of zero vectors."""
-    n2 = (v * v).sum(-1, keepdim=True)
-    zero = n2 == 0
-    return v / torch.sqrt(torch.where(zero, torch.ones_like(n2), n2)), zero[..., 0]
+    """Unit vectors along ``v`` (zero where ``|v| = 0``, with finite gradients) and the mask of zero vectors.
+
+    Scale-safe: ``v`` is first divided by its largest absolute component, so the squared norm lies in [1, 3] for
+    every non-zero finite vector (``(v * v).sum()`` underflows to 0 for components near 1e-20 in float32 and
+    overflows to inf near 1e20).
+    """
+    m = v.abs().amax(-1, keepdim=True)
+    zero = m == 0
+    s = v / torch.where(zero, torch.ones_like(m), m)
+    n2 = (s * s).sum(-1, keepdim=True)
+    return s / torch.sqrt(torch.where(zero, torch.ones_like(n2), n2)), zero[..., 0]
 
 
 def refract(incident: Tensor, normal: Tensor, eta: Tensor | float) -> tuple[Tensor, Tensor]:
@@ -62,13 +73,16 @@ def refract(incident: Tensor, normal: Tensor, eta: Tensor | float) -> tuple[Tens
     :math:`k > 0`, so TIR entries get zero gradients, never NaN). Exports to ONNX (elementwise ops only).
 
     Args:
-        incident: :math:`(..., 3)` directions of travel, pointing toward the surface.
-        normal: :math:`(..., 3)` surface normals, either orientation, broadcastable with ``incident``.
+        incident: :math:`(..., 3)` directions of travel, pointing toward the surface (any non-zero length).
+        normal: :math:`(..., 3)` surface normals, either orientation, any non-zero length, broadcastable with
+            ``incident``.
         eta: :math:`n_1 / n_2` (> 0), a number or a tensor broadcastable with the leading dimensions.
 
     Returns:
-        ``(direction, tir)``: :math:`(..., 3)` unit refracted directions (zero where ``tir``) in the promoted
-        dtype of the inputs, and the :math:`(...)` bool mask of total internal reflection.
+        ``(direction, tir)``: :math:`(..., 3)` unit refracted directions in the promoted dtype of the inputs, and
+        the :math:`(...)` bool mask of total internal reflection. ``direction`` is the zero vector where ``tir``
+        is True and where ``incident`` or ``normal`` has zero length (``tir`` False there: no direction to
+        refract).
 
     Raises:
         TypeError: a non-tensor or non-floating ``incident``/``normal``, or an ``eta`` that is not a number or
@@ -86,6 +100,10 @@ def refract(incident: Tensor, normal: Tensor, eta: Tensor | float) -> tuple[Tens
         >>> rgb = refract(i[None, :], torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.74, 0.75, 0.76]))[0]
         >>> tuple(rgb.shape)  # one direction per channel
         (3, 3)
+        >>> round(refract(i.float() * 1e-30, torch.tensor([0.0, 0.0, 1e30]), 1.0 / 1.5)[0][0].item(), 6)  # any length
+        0.333333
+        >>> refract(torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]), 1.0 / 1.5)  # no direction: zero, not TIR
+        (tensor([0., 0., 0.]), tensor(False))
     """
     _check_vectors(incident, "incident")
     _check_vectors(normal, "normal")
@@ -126,8 +144,9 @@ def reflect(incident: Tensor, normal: Tensor) -> Tensor:
     part is kept. Differentiable; exports to ONNX.
 
     Args:
-        incident: :math:`(..., 3)` directions of travel, pointing toward the surface.
-        normal: :math:`(..., 3)` surface normals (either orientation), broadcastable with ``incident``.
+        incident: :math:`(..., 3)` directions of travel, pointing toward the surface (any non-zero length).
+        normal: :math:`(..., 3)` surface normals (either orientation, any non-zero length), broadcastable with
+            ``incident``.
 
     Returns:
         :math:`(..., 3)` unit reflected directions (zero where an input has zero length), promoted dtype.

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchsss._checks import check_tensor, compute_dtype, is_tracing
+from torchsss._checks import check_devices, check_tensor, compute_dtype, is_tracing
 
 __all__ = ["SparsePattern", "sparse_apply_t", "sparse_pattern"]
 
@@ -89,7 +89,8 @@ def sparse_pattern(rows: Tensor, cols: Tensor, n_rows: int, n_cols: int) -> Spar
 
     Raises:
         TypeError: non-tensor or non-integer indices, non-int sizes.
-        ValueError: indices that are not 1-D, of different lengths, or out of range; negative sizes.
+        ValueError: indices that are not 1-D, of different lengths, on different devices or on the meta device,
+            or out of range; negative sizes.
 
     Examples:
         >>> pat = sparse_pattern(torch.tensor([0, 2, 1]), torch.tensor([1, 0, 1]), 3, 2)
@@ -102,8 +103,7 @@ def sparse_pattern(rows: Tensor, cols: Tensor, n_rows: int, n_cols: int) -> Spar
     n_cols = _check_size(n_cols, "n_cols")
     if rows.shape != cols.shape:
         raise ValueError(f"cols: expected shape {tuple(rows.shape)} (the shape of rows), got {tuple(cols.shape)}")
-    if rows.device != cols.device:
-        raise ValueError(f"cols: expected device {rows.device} (the device of rows), got {cols.device}")
+    check_devices({"rows": rows, "cols": cols}, allow_meta=False)  # the CSR arrays are counted from the data
     _check_range(rows, n_rows, "rows", "n_rows")
     _check_range(cols, n_cols, "cols", "n_cols")
     t_perm = torch.argsort(cols, stable=True)
@@ -118,8 +118,13 @@ def _check_apply_args(x: object, pattern: object, values: object, method: object
     if not isinstance(pattern, SparsePattern):
         raise TypeError(f"pattern: expected a SparsePattern (from sparse_pattern), got {type(pattern).__name__}")
     check_tensor(values, "values")
+    check_devices({"x": x, "values": values, "pattern.rows": pattern.rows, "pattern.cols": pattern.cols,
+                   "pattern.t_crow": pattern.t_crow, "pattern.t_col": pattern.t_col, "pattern.t_perm": pattern.t_perm})
     if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method: expected one of {', '.join(_METHODS)}, got {method!r}")
+    if method == "csr" and x.device.type == "meta":
+        raise ValueError("method: expected 'auto' or 'scatter' on the meta device (torch has no meta kernel for "
+                         "sparse CSR products), got 'csr'")
     if x.dim() not in (2, 3):
         raise ValueError(f"x: expected shape (N, C) or (B, N, C) with N = n_rows = {pattern.n_rows}, "
                          f"got {tuple(x.shape)}")
@@ -176,8 +181,8 @@ def sparse_apply_t(x: Tensor, pattern: SparsePattern, values: Tensor, *, method:
     - ``"scatter"``: gather ``x[rows] * values``, then ``scatter_add`` over ``cols``. Exportable to ONNX (exact in
       onnxruntime), differentiable with respect to ``x`` and ``values``; materialises :math:`B \\cdot nnz \\cdot C`
       products.
-    - ``"auto"``: ``"scatter"`` while tracing/exporting or when autograd records a gradient for ``values``,
-      ``"csr"`` otherwise.
+    - ``"auto"``: ``"scatter"`` while tracing/exporting, on the meta device or when autograd records a gradient
+      for ``values``, ``"csr"`` otherwise.
 
     Float16/bfloat16 are computed in float32 (the CSR kernels do not support them) and cast back.
 
@@ -192,8 +197,10 @@ def sparse_apply_t(x: Tensor, pattern: SparsePattern, values: Tensor, *, method:
         ``values``.
 
     Raises:
-        TypeError: non-floating ``x``/``values``, a ``pattern`` that is not a :class:`SparsePattern`.
-        ValueError: shapes that disagree with the pattern, an unknown ``method``.
+        TypeError: non-floating or complex ``x``/``values``, a ``pattern`` that is not a :class:`SparsePattern`.
+        ValueError: ``x``, ``values`` and the pattern's index arrays on different devices (naming the first
+            one off ``x``'s device), shapes that disagree with the pattern, an unknown ``method``, ``"csr"`` on
+            the meta device.
 
     Examples:
         >>> pat = sparse_pattern(torch.tensor([0, 1, 1]), torch.tensor([1, 0, 0]), 2, 2)
@@ -208,7 +215,7 @@ def sparse_apply_t(x: Tensor, pattern: SparsePattern, values: Tensor, *, method:
     x3, vals = x3.to(dtype), values.to(dtype)
     if method == "auto":
         values_grad = torch.is_grad_enabled() and values.requires_grad
-        method = "scatter" if is_tracing() or values_grad else "csr"
+        method = "scatter" if is_tracing() or values_grad or x3.device.type == "meta" else "csr"
     y = _apply_scatter(x3, pattern, vals) if method == "scatter" else _apply_csr(x3, pattern, vals)
     y = y.to(out_dtype)
     return y[0] if two_d else y

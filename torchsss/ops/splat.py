@@ -42,6 +42,7 @@ from torch import Tensor
 
 from torchsss._checks import (
     as_float_tensor,
+    check_devices,
     check_nonnegative,
     check_positive,
     check_shape,
@@ -639,9 +640,10 @@ def splat_radiosity(
         inputs (float16/bfloat16 computed in float32), on their device.
 
     Raises:
-        TypeError: non-tensor or non-floating inputs, non-bool ``dst_mask``, non-integer ids or materials, a
-            non-int ``window``/``tile_size``, a non-str ``method``.
-        ValueError: shapes that disagree (the message names the argument), material indices out of range, a
+        TypeError: non-tensor, non-floating or complex inputs, non-bool ``dst_mask``, non-integer ids or
+            materials, a non-int ``window``/``tile_size``, a non-str ``method``.
+        ValueError: tensors on different devices (naming the first one off ``src_pos``'s device) or on the meta
+            device, shapes that disagree (the message names the argument), material indices out of range, a
             missing ``src_material`` with several materials, only one of the object ids, non-positive ``r_max``,
             modifiers out of range, non-finite ``src_pos`` or unmasked ``dst_pos``, an unknown ``method``, an even
             ``window``, ``"tile"`` or ``window=None`` while tracing/exporting.
@@ -663,8 +665,14 @@ def splat_radiosity(
     """
     tracing = is_exporting()  # under plain torch.compile the eager path runs (dynamo breaks the graph)
     # -- validation --
-    for name, t in (("src_pos", src_pos), ("src_flux", src_flux), ("dst_pos", dst_pos)):
-        check_tensor(t, name)
+    # devices first, before anything below reads tensor data; the eager path needs data (no meta tensors)
+    check_devices(
+        {"src_pos": src_pos, "src_flux": src_flux, "dst_pos": dst_pos, "dst_mask": dst_mask, "view_proj": view_proj,
+         "r_max": r_max, "src_material": src_material, "src_object": src_object, "dst_object": dst_object,
+         "src_distance_scale": src_distance_scale, "src_irradiance_scale": src_irradiance_scale},
+        floating=("src_pos", "src_flux", "dst_pos"),
+        allow_meta=False,
+    )
     dims = _shape(src_pos, "src_pos", "B,S,3")
     dims = _shape(src_flux, "src_flux", "B,S,C", **dims)
     dims = _shape(dst_pos, "dst_pos", "B,3,H,W", **dims)

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchsss._checks import check_tensor, compute_dtype, is_tracing
+from torchsss._checks import check_devices, compute_dtype, is_tracing
 
 __all__ = ["sv_conv2d", "sv_conv2d_reference"]
 
@@ -25,8 +25,7 @@ _BAND_BYTES = 2 << 20
 
 def _check_inputs(image: object, kernels: object) -> tuple[int, bool]:
     """Validate ``image``/``kernels``; return ``(k, batched_kernels)``."""
-    check_tensor(image, "image")
-    check_tensor(kernels, "kernels")
+    check_devices({"image": image, "kernels": kernels}, floating=True)  # first: before any host synchronisation
     if image.dim() != 4:
         raise ValueError(f"image: expected shape (B, C, H, W) (4 dims), got {tuple(image.shape)}")
     b, _, h, w = image.shape
@@ -74,8 +73,9 @@ def sv_conv2d(image: Tensor, kernels: Tensor) -> Tensor:
         :math:`(B, C, H, W)` tensor in the promoted dtype of the inputs, on their device.
 
     Raises:
-        TypeError: a non-tensor or non-floating ``image``/``kernels``.
-        ValueError: wrong number of dims, even or non-square ``k``, ``H``/``W`` or ``B`` that disagree.
+        TypeError: a non-tensor, non-floating or complex ``image``/``kernels``.
+        ValueError: ``image`` and ``kernels`` on different devices, wrong number of dims, even or non-square
+            ``k``, ``H``/``W`` or ``B`` that disagree.
 
     Examples:
         >>> img = torch.arange(9.0).reshape(1, 1, 3, 3)
