@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 from torchsss.export import EXPORTABLE, MIN_OPSET, compare_with_eager, export_case, export_onnx
 
 DEFAULT_RTOL = 1e-5
@@ -65,7 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     test = ", ".join(str(tuple(a.shape)) for a in case.test_args)
     print(f"exported {path} (opset {ns.opset}) in {t_export:.2f} s at input shapes {example}")
 
-    res = compare_with_eager(case.module, path, case.test_args)
+    with torch.no_grad():
+        scale = None if case.scale is None else case.scale(*case.test_args)
+    res = compare_with_eager(case.module, path, case.test_args, scale=scale)
     print(f"onnxruntime vs eager at input shapes {test} -> output shapes {res['shapes']}:")
     print(f"  max abs diff = {res['max_abs_diff']:.3e}")
     print(f"  max rel diff = {res['max_rel_diff']:.3e} (over {res['compared']} normal entries; rtol {ns.rtol:g})")

@@ -209,9 +209,14 @@ class DipoleMaterial(nn.Module):
     ) -> ProfileTable:
         """A lookup table of this profile over :math:`[0, r_{max}(\\epsilon)]` (values keep gradients).
 
-        See :func:`torchsss.physics.build_profile_table`; a shared range (default) is the fast layout.
+        See :func:`torchsss.physics.build_profile_table`; a shared range (default) is the fast layout. A
+        float16/bfloat16 material is tabulated in float32 (range and values), so that neither a range beyond
+        65504 mm nor a profile value beyond the reduced format's range overflows in the table.
         """
-        rm = self.r_max(eps).to(self.raw_sigma_a.dtype).reshape(-1)
+        dtype = self.raw_sigma_a.dtype
+        work = torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+        coeffs = (t.detach().to(work) for t in (self.sigma_a, self.sigma_s_prime, self.eta))
+        rm = _r_max(*coeffs, eps).reshape(-1)  # Shah's r_max, as self.r_max(eps), in the table's dtype
         return build_profile_table(self, rm, size, warp, shared_range)
 
     def extra_repr(self) -> str:
@@ -275,11 +280,24 @@ class BurleyMaterial(nn.Module):
 
     @classmethod
     def from_dipole(cls, sigma_a: Coeff, sigma_s_prime: Coeff, eta: Coeff = 1.3, **kwargs) -> BurleyMaterial:
-        """Match a dipole material (same total reflectance and eta; see :func:`burley_params_from_dipole`)."""
-        sa = as_float_tensor(sigma_a, "sigma_a", like=_like(kwargs.get("dtype")))
-        a, s = burley_params_from_dipole(sa, sigma_s_prime, eta)
-        eps = 1e-7
-        return cls(a.clamp(eps, 1 - eps), s, eta, **kwargs)
+        """Match a dipole material (same total reflectance and eta; see :func:`burley_params_from_dipole`).
+
+        The parameters are computed in float64 and the albedo clamped to the open interval (0, 1) *in the target
+        dtype* (a fully reflecting material such as spectralon gets the largest value below 1 that the dtype
+        holds, e.g. 1 - 2^-11 in float16), then cast.
+        """
+        dtype = kwargs.get("dtype")
+        sa = as_float_tensor(sigma_a, "sigma_a", like=_like(dtype))
+        target = dtype or sa.dtype
+        work = torch.float32 if sa.device.type == "mps" else torch.float64  # MPS has no float64
+        sa_w = sa.detach().to(work)
+        ss_w = as_float_tensor(sigma_s_prime, "sigma_s_prime", like=sa_w).detach().to(work)
+        et_w = as_float_tensor(eta, "eta", like=sa_w).detach().to(work)
+        a, s = burley_params_from_dipole(sa_w, ss_w, et_w)
+        info = torch.finfo(target)
+        lo = max(1e-7, info.tiny)  # smallest normal number of the target dtype at least
+        hi = min(1.0 - 1e-7, 1.0 - info.eps / 2.0)  # 1 - eps/2: the largest number below 1 in a binary format
+        return cls(a.clamp(lo, hi).to(target), s.to(target), eta, **kwargs)
 
     @classmethod
     def from_preset(cls, name: str, **kwargs) -> BurleyMaterial:
@@ -342,8 +360,10 @@ class BurleyMaterial(nn.Module):
         if self.core == 0:
             return exact
         rho = self.core / s
-        core = burley_cumulative(rho, a, s) * (radius / rho) ** 2  # the disk mean times the area within the core
-        return torch.where(radius < rho, core, exact)
+        inside = radius < rho
+        r_in = torch.where(inside, radius, torch.zeros_like(radius))  # masked first: radius = inf has no NaN gradient
+        core = burley_cumulative(rho, a, s) * (r_in / rho) ** 2  # the disk mean times the area within the core
+        return torch.where(inside, core, exact)
 
     def spacing(self, eps: float = 0.01) -> Tensor:
         """Lattice spacing per channel (mm), no gradient: the dipole-matched rule, at most the core's radius.
@@ -442,18 +462,57 @@ class TabulatedMaterial(nn.Module):
         """The wrapped material's lattice spacing (mm) at ``eps``."""
         return self.material.spacing(eps)
 
+    def _work_dtype(self) -> torch.dtype:
+        """The dtype of the table: the wrapped material's, float32 for float16/bfloat16 materials."""
+        dtype = self.material.eta.dtype
+        return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+    def _table_range(self, work: torch.dtype) -> Tensor:
+        """The table's :math:`(C,)` range :math:`r_{max}(\\epsilon)` in the dtype ``work``.
+
+        For a reduced-precision dipole or Burley material it is computed from the parameters in float32 (a range
+        beyond 65504 mm overflows float16).
+        """
+        material = self.material
+        if material.eta.dtype != work and type(material).r_max in (DipoleMaterial.r_max, BurleyMaterial.r_max):
+            if isinstance(material, DipoleMaterial):
+                rm = _r_max(*(t.detach().to(work) for t in (material.sigma_a, material.sigma_s_prime, material.eta)),
+                            self.eps)
+            else:
+                rm = burley_r_max(material.s.detach().to(work), self.eps)
+        else:
+            rm = material.r_max(self.eps)
+        rm = rm.detach().to(work).reshape(-1)
+        if not is_tracing() and not bool((torch.isfinite(rm) & (rm > 0)).all()):
+            raise ValueError(f"eps: expected a tail fraction whose radius r_max(eps) is finite and > 0 for the "
+                             f"wrapped {type(material).__name__} (the table's range), got eps={self.eps!r} with "
+                             f"r_max {rm.tolist()} mm")
+        return rm
+
     def table(self) -> ProfileTable:
-        """The current table (per-channel ranges; values keep gradients)."""
-        rm = self.material.r_max(self.eps).to(self.material.eta.dtype).reshape(-1)
+        """The current table (per-channel ranges; values keep gradients).
+
+        A float16/bfloat16 material is tabulated in float32 (its profile evaluated at float32 distances), so that
+        values beyond the reduced format's range stay finite in the table and interpolation never meets inf.
+        """
+        rm = self._table_range(self._work_dtype())
         return build_profile_table(self.material, rm, self.size, self.warp, shared_range=False)
 
     def forward(
         self, r: Tensor, distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None
     ) -> Tensor:
-        """:math:`M_i R_d(r M_d)` from the table; ``r`` :math:`(..., 1)` or :math:`(..., C)` mm -> :math:`(..., C)`."""
+        """:math:`M_i R_d(r M_d)` from the table; ``r`` :math:`(..., 1)` or :math:`(..., C)` mm -> :math:`(..., C)`.
+
+        For a float16/bfloat16 material the result has the promoted dtype of ``r`` and the parameters, as the
+        wrapped material's own forward: values beyond a reduced format's range overflow to inf in the final cast.
+        """
         if distance_scale is not None:
             r = r * distance_scale
-        out = lookup_profile_table(r, self.table())
+        table = self.table()
+        out = lookup_profile_table(r, table)
+        dtype = self.material.eta.dtype
+        if table.values.dtype != dtype and isinstance(r, Tensor) and r.is_floating_point():
+            out = out.to(torch.promote_types(r.dtype, dtype))
         if irradiance_scale is not None:
             out = out * irradiance_scale
         return out

@@ -14,7 +14,14 @@ import math
 import torch
 from torch import Tensor
 
-from torchsss._checks import as_float_tensor, check_broadcastable, check_nonnegative, check_positive, compute_dtype
+from torchsss._checks import (
+    as_float_tensor,
+    check_broadcastable,
+    check_nonnegative,
+    check_positive,
+    compute_dtype,
+    is_tracing,
+)
 from torchsss.physics.dipole import total_diffuse_reflectance
 
 __all__ = ["BURLEY_R_FLOOR", "burley_cumulative", "burley_params_from_dipole", "burley_r_max", "burley_rd"]
@@ -22,6 +29,17 @@ __all__ = ["BURLEY_R_FLOOR", "burley_cumulative", "burley_params_from_dipole", "
 #: The profile is singular (1/r) at r = 0; distances are clamped to ``BURLEY_R_FLOOR / s`` so that a
 #: receiver that coincides with a source gets a large finite value instead of inf (the integral is unaffected).
 BURLEY_R_FLOOR = 1e-6
+
+
+def _check_albedo(a: Tensor, name: str) -> None:
+    """Raise ValueError unless every entry of ``a`` is in [0, 1] (skipped while tracing)."""
+    if is_tracing():
+        return
+    bad = torch.isnan(a) | (a < 0) | (a > 1)
+    if bool(bad.any()):
+        first = a.detach()[bad].flatten()[0].item()
+        raise ValueError(f"{name}: expected values in [0, 1], got {first!r} ({int(bad.sum())} of {a.numel()} "
+                         f"entries bad)")
 
 
 def burley_rd(
@@ -35,7 +53,7 @@ def burley_rd(
     """Burley's normalized diffusion profile (mm^-2), with the same optional modifiers as :func:`dipole_rd`.
 
     Args:
-        r: distances in mm, :math:`(..., C)` or :math:`(..., 1)`, >= 0.
+        r: distances in mm, :math:`(..., C)` or :math:`(..., 1)`, >= 0 (``inf`` gives 0 with a zero gradient).
         albedo: surface albedo :math:`A` in [0, 1], e.g. :math:`(C,)`.
         s: shape parameter in mm^-1 (> 0).
         distance_scale: optional :math:`M_d` (> 0) of the source.
@@ -43,6 +61,10 @@ def burley_rd(
 
     Returns:
         The profile, broadcast shape, promoted dtype (float16/bfloat16 computed in float32).
+
+    Raises:
+        TypeError: non-tensor, non-number or non-floating input.
+        ValueError: negative/NaN distances, albedo outside [0, 1], ``s <= 0``, shapes that do not broadcast.
 
     Examples:
         >>> v = burley_rd(torch.tensor([1.0]), torch.tensor([0.8]), torch.tensor([2.0]))
@@ -53,7 +75,7 @@ def burley_rd(
     a_t = as_float_tensor(albedo, "albedo", like=r_t)
     s_t = as_float_tensor(s, "s", like=r_t)
     check_nonnegative(r_t, "r", allow_inf=True)
-    check_nonnegative(a_t, "albedo")
+    _check_albedo(a_t, "albedo")
     check_positive(s_t, "s")
     tensors = {"r": r_t, "albedo": a_t, "s": s_t}
     if distance_scale is not None:
@@ -65,12 +87,21 @@ def burley_rd(
     check_broadcastable(**tensors)
     out_dtype, work = compute_dtype(*tensors.values())
     rr = r_t.to(work)
-    if distance_scale is not None:
-        rr = rr * tensors["distance_scale"].to(work)
     sw = s_t.to(work)
+    md = tensors["distance_scale"].to(work) if distance_scale is not None else None
+    # Where s * r * M_d is not finite (r = inf) the profile and its derivatives are 0; r is masked before any
+    # product (double-where trick) so that no inf * 0 reaches the gradient of s, M_d or the albedo.
+    raw = rr.detach() * sw.detach()
+    if md is not None:
+        raw = raw * md.detach()
+    far = ~torch.isfinite(raw)
+    rr = torch.where(far, torch.zeros_like(rr), rr)
+    if md is not None:
+        rr = rr * md
     rr = torch.maximum(rr, BURLEY_R_FLOOR / sw)
     sr = sw * rr
     val = a_t.to(work) * sw * (torch.exp(-sr) + torch.exp(-sr / 3.0)) / (8.0 * math.pi * rr)
+    val = torch.where(far, torch.zeros_like(val), val)
     if irradiance_scale is not None:
         val = val * tensors["irradiance_scale"].to(work)
     return val.to(out_dtype)
@@ -102,7 +133,8 @@ def burley_cumulative(radius: Tensor | float, albedo: Tensor | float, s: Tensor 
 
     .. math:: \\frac{A}{4}\\left[(1 - e^{-sR}) + 3\\,(1 - e^{-sR/3})\\right]
 
-    It tends to the albedo :math:`A` as :math:`R \\to \\infty`. Shapes broadcast; differentiable.
+    It tends to the albedo :math:`A` as :math:`R \\to \\infty` (and is :math:`A` at ``inf``, with a zero derivative
+    with respect to :math:`s`). Shapes broadcast; differentiable.
 
     Examples:
         >>> round(burley_cumulative(float("inf"), 0.8, 2.0).item(), 6)
@@ -114,8 +146,12 @@ def burley_cumulative(radius: Tensor | float, albedo: Tensor | float, s: Tensor 
     check_nonnegative(r_t, "radius", allow_inf=True)
     check_positive(s_t, "s")
     out_dtype, work = compute_dtype(r_t, a_t, s_t)
-    sr = s_t.to(work) * r_t.to(work)
-    return (a_t.to(work) * 0.25 * (-torch.expm1(-sr) - 3.0 * torch.expm1(-sr / 3.0))).to(out_dtype)
+    rw, sw = r_t.to(work), s_t.to(work)
+    # R = inf (or s R beyond the format): the albedo, with a zero gradient for s (masked before the product)
+    far = ~torch.isfinite(rw.detach() * sw.detach())
+    sr = sw * torch.where(far, torch.zeros_like(rw), rw)
+    inside = torch.where(far, torch.ones_like(sr), -torch.expm1(-sr) - 3.0 * torch.expm1(-sr / 3.0))
+    return (a_t.to(work) * 0.25 * torch.where(far, torch.full_like(sr, 4.0), inside)).to(out_dtype)
 
 
 def burley_r_max(s: Tensor | float, eps: float = 0.01) -> Tensor:

@@ -13,8 +13,25 @@ The profile is written as
 which is Lensch Fig. 2 / Chang Table 1; Shah eq. 6.5 writes :math:`z (\\sigma_{tr} + 1/d) e^{-\\sigma_{tr} d}/d^2`,
 algebraically the same. Because :math:`dh/dx = -x e^{-x}` vanishes at 0, :math:`h` is smooth in
 :math:`u = x^2 = 3\\sigma_a\\sigma_t' d^2`, so the gradient with respect to :math:`\\sigma_a` is finite at
-:math:`\\sigma_a = 0` even though :math:`d\\sigma_{tr}/d\\sigma_a` is not. The evaluation uses a series in
-:math:`u` below a tiny threshold to keep autograd away from the :math:`0 \\cdot \\infty` of the naive chain rule.
+:math:`\\sigma_a = 0` even though :math:`d\\sigma_{tr}/d\\sigma_a` is not. The evaluation uses the series of
+:math:`h` in :math:`u` where :math:`u < 10^{-4}`, which keeps autograd away from the :math:`0 \\cdot \\infty` of the
+naive chain rule at :math:`\\sigma_a = 0` and from the cancellation of the closed form's derivative for tiny
+:math:`\\sigma_a` (float32 gradients are accurate to ~1e-6 down to :math:`\\sigma_a = 0`).
+
+:func:`dipole_rd` evaluates the profile in units of :math:`z_r = 1/\\sigma_t'`,
+
+.. math::
+    R_d = \\frac{\\sigma_s'\\sigma_t'}{4\\pi}\\left[\\frac{h(\\beta D_r)}{D_r^3}
+          + \\zeta\\,\\frac{h(\\beta D_v)}{D_v^3}\\right], \\quad D_{r,v} = \\sqrt{(r\\sigma_t')^2 + \\{1, \\zeta\\}^2},
+    \\quad \\zeta = 1 + \\tfrac43 A, \\quad \\beta = \\sqrt{3\\sigma_a/\\sigma_t'},
+
+so no intermediate overflows unless the result does (the naive form overflows :math:`\\sigma_{tr}^2` in float32
+from :math:`\\sigma_a \\approx 10^{19}` and underflows :math:`d^3` at :math:`r = 0` from
+:math:`\\sigma_t' \\approx 10^{15}`; here only :math:`e^{-\\sigma_{tr} d}` can underflow, far below the peak).
+:math:`r\\sigma_t'` is clamped to :math:`10^{19}` (float32) or :math:`10^{150}` (float64), where the profile is 0
+to below the format's smallest number (for :math:`\\sigma_s'\\sigma_t' < 10^{11}` mm^-2 in float32), and
+``r = inf`` is clamped to the largest finite number *before* any product, so ``r = inf`` gives 0 with a zero
+gradient and no NaN reaches a batch's shared material gradient.
 """
 
 from __future__ import annotations
@@ -44,9 +61,15 @@ __all__ = [
     "total_diffuse_reflectance",
 ]
 
-# Below this value of u = sigma_tr^2 (in mm^-2) the series branch is used. sqrt(1e-20) = 1e-10 mm^-1: an
-# extinction length of 1e10 mm, far outside anything rendered, and the series is exact there to rounding.
-_SERIES_BELOW = 1e-20
+# Where u = (sigma_tr d)^2 is below this, h(sigma_tr d) and the cumulative's bracket are evaluated by their series
+# in u (to u^3.5, next term ~ 1e-20): the closed forms lose their derivative in sigma_a to cancellation there
+# (relative error ~ eps / (sigma_tr d), 1% in float32 at sigma_a = 1e-12 mm^-1) and divide 0 by 0 at sigma_a = 0.
+_SERIES_U = 1e-4
+# total_diffuse_reflectance: the derivative of sqrt(3 sigma_a / sigma_t') is clamped at this argument (see there).
+_SQRT_FLOOR = 1e-12
+# r / z_r is clamped to this (per compute dtype) so that its square cannot overflow: beyond it the profile is 0 to
+# far below the format's smallest number (R_d ~ sigma_s' sigma_t' / rho^3), and its derivative is taken as 0.
+_RHO_CAP = {torch.float32: 1e19, torch.float64: 1e150}
 
 
 class DipoleTerms:
@@ -113,24 +136,72 @@ def dipole_terms(sigma_a: Tensor | float, sigma_s_prime: Tensor | float, eta: Te
     return DipoleTerms(sa, ss, et)
 
 
-def _h_over_d3(u_scale: Tensor, d: Tensor) -> Tensor:
-    """:math:`h(\\sigma_{tr} d)/d^3` with :math:`h(x) = (1+x)e^{-x}`, safe to differentiate at :math:`\\sigma_{tr}=0`.
+def _safe_sqrt(x: Tensor, eps: float = _SQRT_FLOOR) -> Tensor:
+    """:math:`\\sqrt{x}` (exact value) whose derivative is that of the square root clamped at ``eps``.
 
-    ``u_scale`` is :math:`\\sigma_{tr}^2`.
+    For ``x >= eps`` this is ``torch.sqrt``; below, the value is still exactly :math:`\\sqrt{x}` but the
+    derivative is held at :math:`1/(2\\sqrt{\\epsilon})` instead of growing to :math:`+\\infty` at 0.
     """
-    small = u_scale < _SERIES_BELOW
-    if not is_tracing() and not bool(small.any()):  # eager fast path: every channel absorbs
-        sigma_tr = torch.sqrt(u_scale)
-        return (sigma_tr + 1.0 / d) * torch.exp(-sigma_tr * d) / (d * d)
-    # Exact branch, evaluated at a safe value where the series branch is selected (double-where trick).
-    s_safe = torch.where(small, torch.ones_like(u_scale), u_scale)
-    sigma_tr = torch.sqrt(s_safe)
-    exact = (sigma_tr + 1.0 / d) * torch.exp(-sigma_tr * d) / (d * d)
-    # Series of h in u = x^2: 1 - u/2 + u^{3/2}/3 - u^2/8; |u| <= 1e-20 * d^2 keeps the next term negligible.
-    d_fin = torch.where(torch.isinf(d), torch.zeros_like(d), d)  # r = inf: u = 0, the value is 1/d^3 = 0
-    u = torch.where(small, u_scale, torch.zeros_like(u_scale)) * d_fin * d_fin
-    series = (1.0 - 0.5 * u + torch.pow(u, 1.5) / 3.0 - 0.125 * u * u) / (d * d * d)
-    return torch.where(small, series, exact)
+    big = x >= eps
+    exact = torch.sqrt(torch.where(big, x, torch.full_like(x, eps)))
+    low = torch.sqrt(x.detach().clamp_min(0.0)) + (x - x.detach()) * (0.5 / math.sqrt(eps))
+    return torch.where(big, exact, low)
+
+
+def _one_minus_exp(x: Tensor) -> Tensor:
+    """:math:`1 - e^{-x}` for :math:`x \\ge 0` to full relative precision (a Taylor series below 0.1).
+
+    ``torch.expm1`` would do in eager mode, but exporters lower it to ``exp(x) - 1``, which loses the precision this
+    is for; the series (to :math:`x^9`, next term :math:`< 3 \\cdot 10^{-18}` relative) is plain arithmetic.
+    """
+    small = x < 0.1
+    xs = torch.where(small, x, torch.zeros_like(x))
+    poly = torch.ones_like(xs)
+    for k in range(9, 1, -1):
+        poly = 1.0 - xs / k * poly
+    return torch.where(small, xs * poly, 1.0 - torch.exp(-x))
+
+
+def _reduced_distance(r: Tensor, st: Tensor, md: Tensor | None) -> Tensor:
+    """:math:`\\rho = r M_d \\sigma_t'`, the distance in units of :math:`z_r`, clamped to ``_RHO_CAP``.
+
+    ``r = inf`` is first clamped to the largest finite number (zero gradient), so no :math:`\\infty \\cdot 0`
+    reaches the gradient of :math:`\\sigma_t'` or :math:`M_d` (the double-where trick, with clamps); a product that
+    overflows or exceeds the cap is clamped to the cap, which passes a zero gradient to its (finite) factors. At the
+    cap the profile is 0 to below the format's smallest number for any :math:`\\sigma_s'\\sigma_t' < 10^{11}`
+    mm^-2 (float32; :math:`10^{126}` in float64).
+    """
+    r_c = r.clamp(max=torch.finfo(r.dtype).max)
+    scale = st if md is None else md * st
+    return (r_c * scale).clamp(max=_RHO_CAP.get(st.dtype, 1e19))
+
+
+def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small: bool) -> Tensor:
+    """One dipole source in units of :math:`z_r`: ``scale`` :math:`\\cdot\\, \\sigma_t'\\, h(\\beta D) / D^3`.
+
+    ``scale`` is :math:`\\sigma_s'`, ``dist`` is :math:`D = d / z_r \\ge 1` and ``b2`` is
+    :math:`\\beta^2 = 3\\sigma_a/\\sigma_t'`, so that :math:`\\beta D = \\sigma_{tr} d`. Written as
+    :math:`(\\sigma_s'/D)(\\sigma_t'/D)(1/D + \\beta) e^{-\\beta D}`: every factor is bounded by a coefficient
+    (:math:`D \\ge 1`, :math:`\\beta \\le \\sqrt 3`) and non-increasing in :math:`D`, so no intermediate overflows
+    unless the result does, and rounding keeps the result monotone in r. Where :math:`u = \\beta^2 D^2 <`
+    ``_SERIES_U`` (possible only if ``any_small``: some :math:`\\beta^2 <` ``_SERIES_U``), :math:`h` is its series
+    in :math:`u`, whose derivative is exact and finite down to :math:`\\sigma_a = 0`.
+    """
+    inv = torch.reciprocal(dist)
+    prefix = (scale * inv) * (st * inv)
+    if not any_small:
+        beta = torch.sqrt(b2)
+        return prefix * (inv + beta) * torch.exp(-beta * dist)
+    # beta^2 = 0 channels only ever take the series (u = 0); sqrt is masked there before the op (double-where)
+    beta = torch.sqrt(torch.where(b2 > 0, b2, torch.ones_like(b2)))
+    exact = prefix * (inv + beta) * torch.exp(-beta * dist)
+    u = (b2 * dist) * dist
+    tiny = u < _SERIES_U
+    ut = torch.where(tiny, u, torch.zeros_like(u))
+    # h(x) = (1 + x) e^{-x} = 1 - x^2/2 + x^3/3 - x^4/8 + x^5/30 - x^6/144 + x^7/840 - ..., x = sqrt(u)
+    h = (1.0 + ut * (-0.5 + ut * (-0.125 - ut / 144.0))
+         + torch.pow(ut, 1.5) * (1.0 / 3.0 + ut * (1.0 / 30.0 + ut / 840.0)))
+    return torch.where(tiny, prefix * (h * inv), exact)
 
 
 def dipole_rd(
@@ -189,14 +260,19 @@ def dipole_rd(
     out_dtype, work = compute_dtype(r_t, sa, ss, et, *extra.values())
 
     r_w = r_t.to(work)
-    if "distance_scale" in extra:
-        r_w = r_w * extra["distance_scale"].to(work)
-    t = DipoleTerms(sa.to(work), ss.to(work), et.to(work))
-    d_r = torch.sqrt(r_w * r_w + t.z_r * t.z_r)
-    d_v = torch.sqrt(r_w * r_w + t.z_v * t.z_v)
-    rd = t.alpha_prime / (4.0 * math.pi) * (
-        t.z_r * _h_over_d3(t.sigma_tr_sq, d_r) + t.z_v * _h_over_d3(t.sigma_tr_sq, d_v)
-    )
+    sa_w, ss_w = sa.to(work), ss.to(work)
+    st = sa_w + ss_w
+    md = extra["distance_scale"].to(work) if "distance_scale" in extra else None
+    # In units of z_r = 1/sigma_t' (module docstring); r = inf gives 0 with a zero gradient.
+    rho = _reduced_distance(r_w, st, md)
+    zeta = 1.0 + 4.0 / 3.0 * dipole_boundary_a(et.to(work))  # z_v / z_r
+    b2 = 3.0 * (sa_w / st)  # (sigma_tr z_r)^2 = 3 (1 - alpha')
+    any_small = is_tracing() or bool((b2 < _SERIES_U).any())  # u = b2 D^2 >= b2: else no series anywhere
+    rho2 = rho * rho
+    d_r = torch.sqrt(rho2 + 1.0)
+    d_v = torch.sqrt(rho2 + zeta * zeta)
+    rd = (_source_term(ss_w, st, b2, d_r, any_small) + zeta * _source_term(ss_w, st, b2, d_v, any_small)) / (
+        4.0 * math.pi)
     if "irradiance_scale" in extra:
         rd = rd * extra["irradiance_scale"].to(work)
     return rd.to(out_dtype)
@@ -236,8 +312,17 @@ def total_diffuse_reflectance(
         R_{total} = \\frac{\\alpha'}{2}\\left(1 + e^{-\\frac{4}{3} A \\sqrt{3(1-\\alpha')}}\\right)
                     e^{-\\sqrt{3(1-\\alpha')}}
 
-    Note :math:`\\sqrt{3(1-\\alpha')} = \\sigma_{tr} z_r`. Its derivative with respect to :math:`\\sigma_a` is
-    genuinely :math:`-\\infty` at :math:`\\sigma_a = 0` (a square-root cusp); this function does not hide that.
+    Note :math:`\\sqrt{3(1-\\alpha')} = \\sigma_{tr} z_r = \\sqrt{3\\sigma_a/\\sigma_t'}`, computed in that last form
+    (no cancellation in :math:`1 - \\alpha'`).
+
+    **Gradient at** :math:`\\sigma_a = 0`. Because of that square root the one-sided derivative with respect to
+    :math:`\\sigma_a` is genuinely :math:`-\\infty` at :math:`\\sigma_a = 0` (a cusp: the first absorption
+    removes light infinitely fast). For optimisation this function returns a finite surrogate instead (the usual
+    safe-sqrt choice): the value is exact, but the derivative of the square root is clamped at the argument
+    :math:`3\\sigma_a/\\sigma_t' = 10^{-12}` (to :math:`5 \\cdot 10^5`), so gradients are exact for
+    :math:`\\sigma_a \\ge 3.3 \\cdot 10^{-13}\\,\\sigma_t'` and large but finite below. The derivative with
+    respect to :math:`\\sigma_s'` (and :math:`\\eta`) at :math:`\\sigma_a = 0` is exactly 0, its true value
+    (:math:`R_{total} = 1` for every :math:`\\sigma_s'` when nothing absorbs).
 
     Args:
         sigma_a: absorption coefficient in mm^-1 (any shape broadcastable with the others).
@@ -254,9 +339,15 @@ def total_diffuse_reflectance(
     sa, ss, et = _prepare_material(sigma_a, sigma_s_prime, eta, None)
     check_broadcastable(sigma_a=sa, sigma_s_prime=ss, eta=et)
     out_dtype, work = compute_dtype(sa, ss, et)
-    t = DipoleTerms(sa.to(work), ss.to(work), et.to(work))
-    root = torch.sqrt(3.0 * (1.0 - t.alpha_prime).clamp_min(0.0))
-    return (0.5 * t.alpha_prime * (1.0 + torch.exp(-4.0 / 3.0 * t.a * root)) * torch.exp(-root)).to(out_dtype)
+    sa_w, ss_w = sa.to(work), ss.to(work)
+    st = sa_w + ss_w
+    absorbed = sa_w / st  # 1 - alpha'
+    # alpha' = 1 - sigma_a/sigma_t' where scattering dominates (its sigma_s' derivative is then exactly 0 at
+    # sigma_a = 0), sigma_s'/sigma_t' elsewhere (accurate for tiny albedos). Both branches are finite.
+    alpha = torch.where(sa_w <= ss_w, 1.0 - absorbed, ss_w / st)
+    root = _safe_sqrt(3.0 * absorbed)
+    a = dipole_boundary_a(et.to(work))
+    return (0.5 * alpha * (1.0 + torch.exp(-4.0 / 3.0 * a * root)) * torch.exp(-root)).to(out_dtype)
 
 
 def dipole_cumulative(
@@ -272,6 +363,12 @@ def dipole_cumulative(
 
     It equals :func:`total_diffuse_reflectance` at :math:`R = \\infty`. Shapes as :func:`dipole_rd`.
 
+    Gradients: at :math:`R = \\infty` the tail term is 0 with a zero gradient (masked before any product), and the
+    :math:`\\sigma_a = 0` cusp is that of :func:`total_diffuse_reflectance` (the same clamped, finite surrogate).
+    For finite :math:`R` the integral is smooth in :math:`\\sigma_a` at 0 (the linear terms of the two
+    exponentials cancel), and its exact finite derivative there is computed from a series in
+    :math:`\\sigma_{tr}`.
+
     Examples:
         >>> round(dipole_cumulative(float("inf"), 0.0, 1.0, 1.3).item(), 6)
         1.0
@@ -281,15 +378,37 @@ def dipole_cumulative(
     check_nonnegative(r_t, "radius", allow_inf=True)
     check_broadcastable(radius=r_t, sigma_a=sa, sigma_s_prime=ss, eta=et)
     out_dtype, work = compute_dtype(r_t, sa, ss, et)
-    t = DipoleTerms(sa.to(work), ss.to(work), et.to(work))
-    r_w = r_t.to(work)
-    sig = t.sigma_tr
+    r_w, sa_w, ss_w = r_t.to(work), sa.to(work), ss.to(work)
+    st = sa_w + ss_w
+    absorbed = sa_w / st
+    alpha = torch.where(sa_w <= ss_w, 1.0 - absorbed, ss_w / st)
+    b2 = 3.0 * absorbed  # (sigma_tr z_r)^2
+    zeta = 1.0 + 4.0 / 3.0 * dipole_boundary_a(et.to(work))
+    # In units of z_r: each source contributes e^{-beta zz} - (zz / D) e^{-beta D}, D = sqrt(rho^2 + zz^2).
+    far = torch.isinf(r_w)  # R = inf: no tail (masked before any product)
+    rho = _reduced_distance(torch.where(far, torch.zeros_like(r_w), r_w), st, None)
+    beta_cusp = _safe_sqrt(b2)  # R = inf: the head alone, with the cusp of total_diffuse_reflectance
+    beta = torch.sqrt(torch.where(b2 > 0, b2, torch.ones_like(b2)))  # b2 = 0 only takes the series (u = 0)
     total = 0.0
-    for z in (t.z_r, t.z_v):
-        d = torch.sqrt(r_w * r_w + z * z)
-        tail = torch.where(torch.isinf(d), torch.zeros_like(d), z / d * torch.exp(-sig * d))
-        total = total + torch.exp(-sig * z) - tail
-    return (0.5 * t.alpha_prime * total).to(out_dtype)
+    for zz in (torch.ones_like(zeta), zeta):
+        dist = torch.sqrt(rho * rho + zz * zz)
+        excess = rho * rho / (dist + zz)  # D - zz without cancellation (0 at R = 0)
+        # e^{-beta zz} [excess / D + (zz / D)(1 - e^{-beta excess})]: no cancellation for small R
+        exact = torch.exp(-beta * zz) * (excess / dist + zz / dist * _one_minus_exp(beta * excess))
+        # series in beta where u = (beta D)^2 is small (the closed form's sigma_a derivative cancels there):
+        # e^{-x zz} - (zz/D) e^{-x D} = (D - zz)/D + sum_{k>=2} (-1)^k / k! (zz^k b2^{k/2} - zz u^{k/2} / D), x = beta
+        u = (b2 * dist) * dist
+        small = ~far & (u < _SERIES_U)
+        ut = torch.where(small, u, torch.zeros_like(u))
+        bs = torch.where(small, b2, torch.zeros_like(b2))
+        series = excess / dist
+        for k in range(2, 8):
+            b_k = bs ** (k // 2) if k % 2 == 0 else torch.pow(bs, 0.5 * k)
+            u_k = ut ** (k // 2) if k % 2 == 0 else torch.pow(ut, 0.5 * k)
+            series = series + (-1.0) ** k / math.factorial(k) * (zz**k * b_k - zz * u_k / dist)
+        head = torch.exp(-beta_cusp * zz)
+        total = total + torch.where(far, head, torch.where(small, series, exact))
+    return (0.5 * alpha * total).to(out_dtype)
 
 
 def dipole_spectrum(
@@ -309,13 +428,24 @@ def dipole_spectrum(
         \\hat R_d(k) = \\frac{\\alpha'}{2}\\left(e^{-z_r q} + e^{-z_v q}\\right).
 
     :math:`\\hat R_d(0)` is :func:`total_diffuse_reflectance`. Used for the sampling criterion of splats.
+    Evaluated in units of :math:`z_r` (:math:`z_r q = \\sqrt{(k/\\sigma_t')^2 + 3\\sigma_a/\\sigma_t'}`); where
+    :math:`k/\\sigma_t'` or its square is not finite the spectrum is 0 with a zero gradient, and the square root
+    has the clamped derivative of :func:`total_diffuse_reflectance` below :math:`10^{-12}` (finite at
+    :math:`k = \\sigma_a = 0`).
     """
     k_t = as_float_tensor(k, "k")
     sa, ss, et = _prepare_material(sigma_a, sigma_s_prime, eta, k_t)
     check_nonnegative(k_t, "k", allow_inf=True)
     check_broadcastable(k=k_t, sigma_a=sa, sigma_s_prime=ss, eta=et)
     out_dtype, work = compute_dtype(k_t, sa, ss, et)
-    t = DipoleTerms(sa.to(work), ss.to(work), et.to(work))
-    k_w = k_t.to(work)
-    q = torch.sqrt(k_w * k_w + t.sigma_tr_sq)
-    return (0.5 * t.alpha_prime * (torch.exp(-t.z_r * q) + torch.exp(-t.z_v * q))).to(out_dtype)
+    k_w, sa_w, ss_w = k_t.to(work), sa.to(work), ss.to(work)
+    st = sa_w + ss_w
+    absorbed = sa_w / st
+    alpha = torch.where(sa_w <= ss_w, 1.0 - absorbed, ss_w / st)
+    zeta = 1.0 + 4.0 / 3.0 * dipole_boundary_a(et.to(work))
+    kappa_raw = k_w.detach() / st.detach()
+    far = ~torch.isfinite(kappa_raw * kappa_raw)
+    kappa = torch.where(far, torch.zeros_like(k_w), k_w) / st
+    q = _safe_sqrt(kappa * kappa + 3.0 * absorbed)  # z_r q
+    spec = 0.5 * alpha * (torch.exp(-q) + torch.exp(-zeta * q))
+    return torch.where(far, torch.zeros_like(spec), spec).to(out_dtype)

@@ -109,6 +109,11 @@ def lookup_profile_table(r: Tensor, table: ProfileTable) -> Tensor:
         r: distances in mm, :math:`(..., C)` or :math:`(..., 1)` (>= 0).
         table: from :func:`build_profile_table`, with C channels.
 
+    With ``warp="sqrt"`` the first segment :math:`[0, r_{max}/(N-1)^2]` is interpolated linearly in
+    :math:`r^2` (the other segments linearly in :math:`\\sqrt{r}`), so the slope at r = 0 is 0, as for any
+    radial profile smooth at the origin, instead of :math:`-\\infty`. float16/bfloat16 tables are interpolated
+    in float32 and the result cast back.
+
     Returns:
         :math:`(..., C)`, 0 beyond each channel's :math:`r_{max}`; dtype of ``table.values``.
 
@@ -123,29 +128,42 @@ def lookup_profile_table(r: Tensor, table: ProfileTable) -> Tensor:
     n, c = values.shape
     if r.dim() == 0 or r.shape[-1] not in (1, c):
         raise ValueError(f"r: expected shape (..., {c}) or (..., 1) for a {c}-channel table, got {tuple(r.shape)}")
-    r = r.to(values.dtype)
-    r_max = table.r_max.to(values.dtype)
+    # float16/bfloat16 tables are interpolated in float32: node indices above 2048 (256 for bfloat16) are not
+    # representable in the reduced formats, and neither are the positions between them.
+    work = torch.float32 if values.dtype in (torch.float16, torch.bfloat16) else values.dtype
+    vals = values.to(work)
+    r = r.to(work)
+    r_max = table.r_max.to(work)
     if table.shared_range and r.shape[-1] == 1:
         r_max = r_max[:1]  # one index per distance, whole rows gathered
     x = (r / r_max).clamp(0.0, 1.0)
     if table.warp == "sqrt":
-        x = torch.sqrt(x)
-    pos = x * (n - 1)
-    i0 = torch.floor(pos).clamp(max=n - 2)
-    frac = pos - i0
+        # First segment [0, r_max/(n-1)^2]: linear in r^2 rather than in sqrt(r). A radial profile that is smooth
+        # on the plane is even in r, so this is exact to second order and has the true slope 0 at r = 0 (linear
+        # in sqrt(r) would have slope -inf there). sqrt is masked before the op (double-where trick).
+        q = x * float((n - 1) ** 2)  # r / r_1, r_1 the first node after 0
+        first = q < 1.0
+        root = torch.sqrt(torch.where(first, torch.ones_like(x), x))
+        pos = torch.where(first, torch.zeros_like(x), root * (n - 1))
+        i0 = torch.floor(pos).clamp(max=n - 2)
+        frac = torch.where(first, q * q, pos - i0)
+    else:
+        pos = x * (n - 1)
+        i0 = torch.floor(pos).clamp(max=n - 2)
+        frac = pos - i0
     if table.shared_range and r.shape[-1] == 1:
         rows = i0.to(torch.int64).reshape(-1)
         shape = (*r.shape[:-1], c)
-        v0 = values.index_select(0, rows).reshape(shape)
-        v1 = values.index_select(0, rows + 1).reshape(shape)
+        v0 = vals.index_select(0, rows).reshape(shape)
+        v1 = vals.index_select(0, rows + 1).reshape(shape)
     else:
         channel = torch.arange(c, device=values.device)
         idx0 = i0.to(torch.int64) * c + channel  # (..., C) flat index of the left node
-        flat = values.reshape(-1)
+        flat = vals.reshape(-1)
         v0 = flat.index_select(0, idx0.reshape(-1)).reshape(idx0.shape)
         v1 = flat.index_select(0, (idx0 + c).reshape(-1)).reshape(idx0.shape)
     out = v0 + frac * (v1 - v0)
-    return torch.where(r <= r_max, out, torch.zeros_like(out))
+    return torch.where(r <= r_max, out, torch.zeros_like(out)).to(values.dtype)
 
 
 def profile_table_error(
