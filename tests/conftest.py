@@ -105,3 +105,15 @@ def rel_rmse(a: torch.Tensor, b: torch.Tensor) -> float:
     """Relative RMSE of ``a`` against ``b`` over the pixels where ``b`` is non-zero."""
     m = b != 0
     return float((a - b)[m].square().mean().sqrt() / b[m].square().mean().sqrt())
+
+
+def assert_eta_gradient(f, shape, eta0: float = 1.3, h: float = 1e-6) -> torch.Tensor:
+    """``f(eta)`` (a scalar) has a finite, non-zero gradient w.r.t. a float64 ``eta`` of ``shape`` that matches
+    central finite differences (rtol 1e-6); returns the eta tensor (with its gradient)."""
+    eta = torch.full(shape, eta0, dtype=torch.float64, requires_grad=True)
+    f(eta).backward()
+    grad = eta.grad.reshape(())
+    fd = (f(torch.tensor(eta0 + h, dtype=torch.float64)) - f(torch.tensor(eta0 - h, dtype=torch.float64))) / (2 * h)
+    assert torch.isfinite(grad) and grad != 0
+    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
+    return eta

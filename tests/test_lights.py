@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import assert_eta_gradient
 
 from torchsss.geometry.lights import (
     DirectionalLight,
@@ -137,13 +138,7 @@ def test_eta_tensor_gradient_matches_finite_differences(fresnel, shape):
     def f(eta):
         return (surface_irradiance(pts, nrm, lights, eta, fresnel=fresnel) * weights).sum()
 
-    eta = torch.full(shape, 1.3, dtype=torch.float64, requires_grad=True)
-    f(eta).backward()
-    grad = eta.grad.reshape(())
-    h = 1e-6
-    fd = (f(torch.tensor(1.3 + h, dtype=torch.float64)) - f(torch.tensor(1.3 - h, dtype=torch.float64))) / (2 * h)
-    assert torch.isfinite(grad) and grad != 0
-    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
+    eta = assert_eta_gradient(f, shape)
     # the tensor gives the same values as the number
     torch.testing.assert_close(surface_irradiance(pts, nrm, lights, eta.detach(), fresnel=fresnel),
                                surface_irradiance(pts, nrm, lights, 1.3, fresnel=fresnel), rtol=0, atol=0)

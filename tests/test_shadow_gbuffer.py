@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import assert_eta_gradient
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer, layer_gbuffer, light_view
@@ -169,13 +170,7 @@ def test_light_view_eta_tensor_gradient_matches_finite_differences(shape):
         lv = light_view(mesh, light, 32, eta)
         return lv.flux.sum() + lv.irradiance.sum()
 
-    eta = torch.full(shape, 1.3, dtype=torch.float64, requires_grad=True)
-    f(eta).backward()
-    grad = eta.grad.reshape(())
-    h = 1e-6
-    fd = (f(torch.tensor(1.3 + h, dtype=torch.float64)) - f(torch.tensor(1.3 - h, dtype=torch.float64))) / (2 * h)
-    assert torch.isfinite(grad) and grad != 0
-    torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
+    assert_eta_gradient(f, shape)
     # per channel: each channel as with its own number
     lv3 = light_view(mesh, light, 32, torch.tensor([1.2, 1.3, 1.5], dtype=torch.float64))
     for c, e in enumerate((1.2, 1.3, 1.5)):
