@@ -4,6 +4,7 @@ Lengths are in millimetres and coefficients per millimetre throughout.
 """
 
 from torchsss import ops, physics
+from torchsss._checks import set_validation, validation, validation_enabled
 from torchsss.modules import BurleyMaterial, DipoleMaterial, DipoleProfile, TabulatedMaterial, material_module
 from torchsss.ops import reference_radiosity
 from torchsss.physics import (
@@ -42,5 +43,8 @@ __all__ = [
     "preset_names",
     "reference_radiosity",
     "schlick_reflectance",
+    "set_validation",
     "total_diffuse_reflectance",
+    "validation",
+    "validation_enabled",
 ]

@@ -8,8 +8,10 @@ need to look at tensor data are skipped while a graph is being traced, compiled 
 
 from __future__ import annotations
 
+import contextlib
 import numbers
-from collections.abc import Collection, Mapping, Sequence
+import os
+from collections.abc import Collection, Iterator, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -19,6 +21,7 @@ __all__ = [
     "check_broadcastable",
     "check_devices",
     "check_finite",
+    "check_finite_inputs",
     "check_nonnegative",
     "check_positive",
     "check_shape",
@@ -26,7 +29,10 @@ __all__ = [
     "compute_dtype",
     "is_exporting",
     "is_tracing",
+    "set_validation",
     "skip_value_checks",
+    "validation",
+    "validation_enabled",
 ]
 
 _REDUCED = (torch.float16, torch.bfloat16)
@@ -51,13 +57,71 @@ def is_exporting() -> bool:
     return bool(torch.jit.is_tracing() or torch.compiler.is_exporting() or torch.onnx.is_in_onnx_export())
 
 
+_VALIDATE = os.environ.get("TORCHSSS_VALIDATE", "1").strip().lower() not in ("0", "false", "off", "no")
+
+
+def validation_enabled() -> bool:
+    """Whether value checks run (non-finite inputs, ranges); True by default.
+
+    The environment variable ``TORCHSSS_VALIDATE=0`` turns them off for a whole process; :func:`set_validation`
+    and :func:`validation` switch them at run time. Type, shape and device checks always run (they read no
+    tensor data and cost nothing).
+
+    Examples:
+        >>> validation_enabled()
+        True
+    """
+    return _VALIDATE
+
+
+def set_validation(enabled: bool) -> bool:
+    """Switch the value checks of every op and module on or off; return the previous setting.
+
+    With validation on (the default), a module given a NaN or infinite input raises ValueError naming the input
+    and the first bad index, instead of returning NaN or a plausible wrong value. The checks read tensor data
+    (one reduction per input and a host synchronisation); switch them off in a tight loop once the inputs are
+    known to be good (``benchmarks/bench_validation.py`` measures their cost). They never run while tracing,
+    compiling or exporting.
+
+    Raises:
+        TypeError: ``enabled`` is not a bool.
+
+    Examples:
+        >>> previous = set_validation(False)
+        >>> validation_enabled()
+        False
+        >>> _ = set_validation(previous)
+    """
+    global _VALIDATE
+    if not isinstance(enabled, bool):
+        raise TypeError(f"enabled: expected a bool, got {type(enabled).__name__}")
+    previous, _VALIDATE = _VALIDATE, enabled
+    return previous
+
+
+@contextlib.contextmanager
+def validation(enabled: bool) -> Iterator[None]:
+    """Context manager: value checks on or off inside the ``with`` block (see :func:`set_validation`).
+
+    Examples:
+        >>> with validation(False):
+        ...     validation_enabled()
+        False
+    """
+    previous = set_validation(enabled)
+    try:
+        yield
+    finally:
+        set_validation(previous)
+
+
 def skip_value_checks(*tensors: object) -> bool:
     """True where checks that read tensor data must not run.
 
-    That is while tracing, compiling or exporting, or when one of ``tensors`` lives on the meta device (shapes
-    and dtypes only, no data: ``.item()`` would raise).
+    That is while tracing, compiling or exporting, when validation is switched off (:func:`set_validation`), or
+    when one of ``tensors`` lives on the meta device (shapes and dtypes only, no data: ``.item()`` would raise).
     """
-    return is_tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
+    return (not _VALIDATE) or is_tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
 
 
 def check_tensor(x: object, name: str) -> Tensor:
@@ -182,6 +246,29 @@ def check_finite(x: Tensor, name: str) -> None:
     if skip_value_checks(x):
         return
     _report(x, ~torch.isfinite(x), name, "finite values")
+
+
+def check_finite_inputs(inputs: Mapping[str, Tensor | None], where: Tensor | None = None) -> None:
+    """Run :func:`check_finite` on each named input (``None`` entries skipped), in order.
+
+    ``where`` (broadcastable to each input, bool) restricts the check to entries that are used, e.g. the pixels
+    of a mask (positions off the mask may hold anything).
+
+    Examples:
+        >>> check_finite_inputs({"light": torch.zeros(1, 4), "intensity": torch.tensor([[1.0, float("inf")]])})
+        Traceback (most recent call last):
+        ...
+        ValueError: intensity: expected finite values, got inf (1 of 2 entries bad, the first at index (0, 1))
+    """
+    if skip_value_checks(*inputs.values(), where):
+        return
+    for name, x in inputs.items():
+        if x is None:
+            continue
+        bad = ~torch.isfinite(x)
+        if where is not None:
+            bad = bad & where
+        _report(x, bad.expand(x.shape) if bad.shape != x.shape else bad, name, "finite values")
 
 
 def check_nonnegative(x: Tensor, name: str, allow_inf: bool = False) -> None:

@@ -64,6 +64,7 @@ from torchsss._checks import (
     as_float_tensor,
     check_devices,
     check_finite,
+    check_finite_inputs,
     check_positive,
     check_shape,
     check_tensor,
@@ -261,6 +262,10 @@ class CausticMap(nn.Module):
         check_positive(view_proj.abs().sum((-2, -1)), "view_proj")
         # a NaN intensity would silently give an all-zero map (the splat drops non-finite flux)
         check_finite(intensity, "intensity")
+        # a covered texel with a NaN position or normal would silently drop out of the map
+        check_finite_inputs({"front_position": front_position, "front_normal": front_normal}, where=front_mask != 0)
+        if self.mode == "double":
+            check_finite_inputs({"back_position": back_position, "back_normal": back_normal}, where=back_mask != 0)
 
     # -- forward -------------------------------------------------------------------------------------------------
     def forward(

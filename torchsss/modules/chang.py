@@ -47,7 +47,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchsss._checks import check_int, check_nonnegative, check_positive, check_shape, check_tensor, is_tracing
+from torchsss._checks import (
+    check_finite,
+    check_int,
+    check_nonnegative,
+    check_positive,
+    check_shape,
+    check_tensor,
+    is_tracing,
+    skip_value_checks,
+)
 from torchsss.modules.sampling import IcdfSampler
 from torchsss.ops.icdf import MAX_LEVELS
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS, reference_radiosity
@@ -212,7 +221,9 @@ class ImportanceSampledTranslucency(nn.Module):
         if not is_tracing() and dims["N"] < 1:
             raise ValueError(f"u: expected at least one sample (N >= 1), got shape {tuple(u.shape)}")
         check_tensor(receivers, "receivers")
-        return check_shape(receivers, "receivers", "B,M,3", **dims)
+        dims = check_shape(receivers, "receivers", "B,M,3", **dims)
+        check_finite(receivers, "receivers")
+        return dims
 
     def forward(self, irradiance: Tensor, u: Tensor, receivers: Tensor, pdf: Tensor | None = None) -> Tensor:
         """Radiosity :math:`(B, M, C)` at ``receivers`` from ``N`` importance samples (see the module notes).
@@ -237,7 +248,7 @@ class ImportanceSampledTranslucency(nn.Module):
         b, n = dims["B"], dims["N"]
         h, w = self.shape
         ep = self.weighted_irradiance(irradiance)
-        if not is_tracing() and not bool(torch.isfinite(ep.sum())):
+        if not skip_value_checks(ep) and not bool(torch.isfinite(ep.sum())):
             raise ValueError(f"irradiance: expected values whose area-weighted sum is finite in {ep.dtype}, got an "
                              f"overflow (max irradiance {float(irradiance.max()):.3g}); rescale the light intensity "
                              "or use float64")
@@ -555,6 +566,7 @@ class HybridTranslucency(nn.Module):
         check_tensor(receivers_uv, "receivers_uv")
         dims = self.global_term._check_inputs(irradiance, u, receivers)
         check_shape(receivers_uv, "receivers_uv", "B,M,2", B=dims["B"], M=dims["M"])
+        check_finite(receivers_uv, "receivers_uv")
         glob = self.global_term(irradiance, u, receivers)
         if self.bound <= 0:
             return glob

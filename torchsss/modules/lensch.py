@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from torchsss._checks import check_shape, check_tensor
+from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
 from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d
@@ -134,6 +134,7 @@ class IrradianceAtlas(nn.Module):
         """Irradiance atlas :math:`(B, C, H, W)`; ``visibility`` optional :math:`(B, 1, H, W)` in [0, 1]."""
         check_shape(light, "light", "B,4")
         dims = check_shape(intensity, "intensity", "B,C", B=light.shape[0])
+        check_finite_inputs({"light": light, "intensity": intensity, "visibility": visibility})
         w = light[:, 3:4].view(-1, 1, 1, 1)
         xyz = light[:, :3].view(-1, 3, 1, 1)
         delta = xyz - w * self.position  # point: light - x; directional: the direction itself
@@ -216,7 +217,13 @@ class LocalResponse(nn.Module):
         return k
 
     def forward(self, irradiance: Tensor) -> Tensor:
-        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` local radiosity."""
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` local radiosity.
+
+        Raises:
+            ValueError: a NaN or infinite irradiance texel (named with its index; see
+                :func:`torchsss.set_validation`).
+        """
+        check_finite(irradiance, "irradiance")
         e = irradiance if self.irradiance_scale is None else irradiance * self.irradiance_scale
         key = _material_key(self.material)
         k = self._cache.get(None if key is None else (*key, self.distance.device), self.kernels)
@@ -315,7 +322,13 @@ class GlobalResponse(nn.Module):
         return (vals * self.bary.unsqueeze(1)).sum(2) * self.valid
 
     def forward(self, irradiance: Tensor) -> Tensor:
-        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` global radiosity atlas."""
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` global radiosity atlas.
+
+        Raises:
+            ValueError: a NaN or infinite irradiance texel (named with its index; see
+                :func:`torchsss.set_validation`).
+        """
+        check_finite(irradiance, "irradiance")
         return self.reconstruct(self.vertex_radiosity(irradiance))
 
 
@@ -351,10 +364,17 @@ class LenschTranslucency(nn.Module):
         return self.local.material
 
     def forward(self, irradiance: Tensor) -> Tensor:
-        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` radiosity atlas."""
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` radiosity atlas.
+
+        Raises:
+            TypeError: a non-floating ``irradiance``.
+            ValueError: an atlas of another size, a NaN or infinite texel (named with its index; see
+                :func:`torchsss.set_validation`).
+        """
         check_tensor(irradiance, "irradiance")
         h, w = self.local.distance.shape[:2]
         check_shape(irradiance, "irradiance", "B,C,H,W", H=h, W=w)
+        check_finite(irradiance, "irradiance")
         g = self.global_response
         vert = g.vertex_radiosity(irradiance)
         if self.direct is not None:

@@ -43,6 +43,7 @@ from torch import Tensor
 from torchsss._checks import (
     as_float_tensor,
     check_devices,
+    check_finite_inputs,
     check_nonnegative,
     check_positive,
     check_shape,
@@ -50,6 +51,7 @@ from torchsss._checks import (
     compute_dtype,
     is_exporting,
     is_tracing,
+    skip_value_checks,
 )
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
@@ -645,8 +647,9 @@ def splat_radiosity(
         ValueError: tensors on different devices (naming the first one off ``src_pos``'s device) or on the meta
             device, shapes that disagree (the message names the argument), material indices out of range, a
             missing ``src_material`` with several materials, only one of the object ids, non-positive ``r_max``,
-            modifiers out of range, non-finite ``src_pos`` or unmasked ``dst_pos``, an unknown ``method``, an even
-            ``window``, ``"tile"`` or ``window=None`` while tracing/exporting.
+            modifiers out of range, a NaN or infinite ``src_pos``, ``src_flux``, ``view_proj`` or ``dst_pos`` under
+            the mask (naming the input and the first bad index; see :func:`torchsss.set_validation`), an unknown
+            ``method``, an even ``window``, ``"tile"`` or ``window=None`` while tracing/exporting.
 
     Examples:
         >>> from torchsss.modules import DipoleMaterial
@@ -736,11 +739,9 @@ def splat_radiosity(
             check_positive(md, "src_distance_scale")
         if mi is not None:
             check_nonnegative(mi, "src_irradiance_scale")
-        if not bool(torch.isfinite(src_pos).all()):
-            raise ValueError("src_pos: expected finite positions, got a NaN or inf entry")
-        if not bool((torch.isfinite(dst_pos) | ~dst_mask).all()):
-            raise ValueError("dst_pos: expected finite positions where dst_mask is True, got a NaN or inf entry")
-        if src_material is not None and src_material.numel() > 0:
+        check_finite_inputs({"src_pos": src_pos, "src_flux": src_flux, "view_proj": vp})
+        check_finite_inputs({"dst_pos": dst_pos}, where=dst_mask)  # off the mask a position may hold anything
+        if src_material is not None and src_material.numel() > 0 and not skip_value_checks(src_material):
             lo, hi = int(src_material.min()), int(src_material.max())
             if lo < 0 or hi >= m:
                 raise ValueError(

@@ -33,7 +33,7 @@ BURLEY_R_FLOOR = 1e-6
 
 def _check_albedo(a: Tensor, name: str) -> None:
     """Raise ValueError unless every entry of ``a`` is in [0, 1] (skipped while tracing)."""
-    if is_tracing():
+    if skip_value_checks(a):
         return
     bad = torch.isnan(a) | (a < 0) | (a > 1)
     if bool(bad.any()):

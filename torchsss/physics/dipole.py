@@ -48,6 +48,7 @@ from torchsss._checks import (
     check_positive,
     compute_dtype,
     is_tracing,
+    skip_value_checks,
 )
 from torchsss.physics.fresnel import dipole_boundary_a
 
@@ -115,7 +116,7 @@ def _prepare_material(
     check_nonnegative(sa, "sigma_a")
     check_nonnegative(ss, "sigma_s_prime")
     check_positive(et, "eta")
-    if not is_tracing():
+    if not skip_value_checks(sa, ss):
         st = sa.detach() + ss.detach()
         if bool((st <= 0).any()):
             raise ValueError("sigma_a + sigma_s_prime: expected > 0 (a medium that neither absorbs nor scatters "
@@ -267,7 +268,7 @@ def dipole_rd(
     rho = _reduced_distance(r_w, st, md)
     zeta = 1.0 + 4.0 / 3.0 * dipole_boundary_a(et.to(work))  # z_v / z_r
     b2 = 3.0 * (sa_w / st)  # (sigma_tr z_r)^2 = 3 (1 - alpha')
-    any_small = is_tracing() or bool((b2 < _SERIES_U).any())  # u = b2 D^2 >= b2: else no series anywhere
+    any_small = is_tracing() or b2.device.type == "meta" or bool((b2 < _SERIES_U).any())  # u = b2 D^2 >= b2: else no series anywhere
     rho2 = rho * rho
     d_r = torch.sqrt(rho2 + 1.0)
     d_v = torch.sqrt(rho2 + zeta * zeta)

@@ -43,6 +43,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
+from torchsss._checks import check_finite
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer, light_view
@@ -126,8 +127,7 @@ def _vertex_modifier(value: Tensor | None, name: str, mesh: Mesh, dtype: torch.d
     if value.dim() not in (1, 2) or value.shape[0] != v or (value.dim() == 2 and value.shape[1] not in (1, 3)):
         raise ValueError(f"{name}: expected shape ({v},) or ({v}, 3) (one value per vertex), got "
                          f"{tuple(value.shape)}")
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name}: expected finite values, got a NaN or inf entry")
+    check_finite(value, name)
     return value.to(dtype).reshape(v, -1)
 
 
