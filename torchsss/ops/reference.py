@@ -7,7 +7,14 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchsss._checks import check_devices, check_finite, check_nonnegative, check_shape, check_tensor
+from torchsss._checks import (
+    check_devices,
+    check_finite,
+    check_nonnegative,
+    check_shape,
+    check_tensor,
+    compute_dtype,
+)
 
 __all__ = ["pairwise_distance", "reference_radiosity"]
 
@@ -80,7 +87,9 @@ def reference_radiosity(
         max_pairs: pair budget per chunk (>= 1).
 
     Returns:
-        :math:`(B, M, C)` radiosity :math:`B(x_o)` (multiply by :math:`F_t/\\pi` for radiance).
+        :math:`(B, M, C)` radiosity :math:`B(x_o)` (multiply by :math:`F_t/\\pi` for radiance), in the promoted
+        dtype of the inputs and the profile's output; float16/bfloat16 inputs are computed in float32 and, unless
+        the profile's output is wider, cast back.
 
     Raises:
         TypeError: non-tensor, non-floating or complex inputs, non-integer ids.
@@ -116,7 +125,10 @@ def reference_radiosity(
     check_nonnegative(area_in, "src_area")
     check_finite(dst_pos, "dst_pos")
     c = dims["C"]
-    weight = src_irradiance * src_area
+    # float16/bfloat16 are computed in float32 (E dA of small values underflows in float16) and cast back
+    out_dtype, work = compute_dtype(src_pos, src_irradiance, src_area, dst_pos)
+    src_pos, dst_pos = src_pos.to(work), dst_pos.to(work)
+    weight = src_irradiance.to(work) * src_area.to(work)
     if src_irradiance_scale is not None:
         check_tensor(src_irradiance_scale, "src_irradiance_scale")
         if src_irradiance_scale.dim() != 3 or src_irradiance_scale.shape[-1] not in (1, c):
@@ -124,7 +136,7 @@ def reference_radiosity(
                              f"got {tuple(src_irradiance_scale.shape)}")
         check_shape(src_irradiance_scale, "src_irradiance_scale", f"B,N,{src_irradiance_scale.shape[-1]}", **dims)
         check_finite(src_irradiance_scale, "src_irradiance_scale")
-        weight = weight * src_irradiance_scale
+        weight = weight * src_irradiance_scale.to(work)
     if src_distance_scale is not None:
         check_tensor(src_distance_scale, "src_distance_scale")
         if src_distance_scale.dim() != 3 or src_distance_scale.shape[-1] not in (1, c):
@@ -155,11 +167,12 @@ def reference_radiosity(
             n1 = min(n, n0 + n_chunk)
             r = pairwise_distance(dst_pos[:, m0:m1], src_pos[:, n0:n1])  # (B, m, n, 1)
             if src_distance_scale is not None:
-                r = r * src_distance_scale[:, None, n0:n1]
+                r = r * src_distance_scale[:, None, n0:n1].to(work)
             kern = profile(r)  # (B, m, n, C)
             if src_ids is not None:
                 same = dst_ids[:, m0:m1, None] == src_ids[:, None, n0:n1]
                 kern = kern * same.unsqueeze(-1).to(kern.dtype)
             acc = acc + (kern * weight[:, None, n0:n1]).sum(2)
         out.append(acc)
-    return torch.cat(out, dim=1)
+    result = torch.cat(out, dim=1)
+    return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work else result.to(out_dtype)

@@ -20,7 +20,7 @@ from torchsss._checks import (
     check_nonnegative,
     check_positive,
     compute_dtype,
-    is_tracing,
+    skip_value_checks,
 )
 from torchsss.physics.dipole import total_diffuse_reflectance
 
@@ -89,12 +89,13 @@ def burley_rd(
     rr = r_t.to(work)
     sw = s_t.to(work)
     md = tensors["distance_scale"].to(work) if distance_scale is not None else None
-    # Where s * r * M_d is not finite (r = inf) the profile and its derivatives are 0; r is masked before any
-    # product (double-where trick) so that no inf * 0 reaches the gradient of s, M_d or the albedo.
+    # Where s * r * M_d is infinite (r = inf) the profile and its derivatives are 0; r is masked before any
+    # product (double-where trick) so that no inf * 0 reaches the gradient of s, M_d or the albedo. NaN stays NaN
+    # (with validation off a NaN distance must not come out as a plausible 0).
     raw = rr.detach() * sw.detach()
     if md is not None:
         raw = raw * md.detach()
-    far = ~torch.isfinite(raw)
+    far = torch.isinf(raw)
     rr = torch.where(far, torch.zeros_like(rr), rr)
     if md is not None:
         rr = rr * md

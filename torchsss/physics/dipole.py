@@ -163,8 +163,9 @@ def _one_minus_exp(x: Tensor) -> Tensor:
     return torch.where(small, xs * poly, 1.0 - torch.exp(-x))
 
 
-def _reduced_distance(r: Tensor, st: Tensor, md: Tensor | None) -> Tensor:
-    """:math:`\\rho = r M_d \\sigma_t'`, the distance in units of :math:`z_r`, clamped to ``_RHO_CAP``.
+def _reduced_distance(r: Tensor, st: Tensor, md: Tensor | None, cap: float | None = None) -> Tensor:
+    """:math:`\\rho = r M_d \\sigma_t'`, the distance in units of :math:`z_r`, clamped to ``cap`` (default
+    ``_RHO_CAP``; :func:`dipole_rd` passes the format's largest number and squares with :func:`_source_distance`).
 
     ``r = inf`` is first clamped to the largest finite number (zero gradient), so no :math:`\\infty \\cdot 0`
     reaches the gradient of :math:`\\sigma_t'` or :math:`M_d` (the double-where trick, with clamps); a product that
@@ -174,7 +175,19 @@ def _reduced_distance(r: Tensor, st: Tensor, md: Tensor | None) -> Tensor:
     """
     r_c = r.clamp(max=torch.finfo(r.dtype).max)
     scale = st if md is None else md * st
-    return (r_c * scale).clamp(max=_RHO_CAP.get(st.dtype, 1e19))
+    return (r_c * scale).clamp(max=_RHO_CAP.get(st.dtype, 1e19) if cap is None else cap)
+
+
+def _source_distance(rho: Tensor, zz: Tensor | float) -> Tensor:
+    """:math:`D = \\sqrt{\\rho^2 + z^2}` without overflow: :math:`D = \\rho` (to rounding) beyond ``_RHO_CAP``.
+
+    The square is only taken of distances below the cap (double-where), so a :math:`\\rho` up to the format's
+    largest number gives a finite :math:`D` and finite gradients.
+    """
+    big = _RHO_CAP.get(rho.dtype, 1e19)
+    far = rho > big
+    near = torch.where(far, torch.zeros_like(rho), rho)
+    return torch.where(far, rho, torch.sqrt(near * near + zz * zz))
 
 
 def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small: bool) -> Tensor:
@@ -196,8 +209,12 @@ def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small:
     # beta^2 = 0 channels only ever take the series (u = 0); sqrt is masked there before the op (double-where)
     beta = torch.sqrt(torch.where(b2 > 0, b2, torch.ones_like(b2)))
     exact = prefix * (inv + beta) * torch.exp(-beta * dist)
-    u = (b2 * dist) * dist
-    tiny = u < _SERIES_U
+    # u = (beta D)^2, squared only below the cap (double-where: b2 D D could overflow, and inf * 0 in the backward);
+    # beyond it the exact form serves every beta > 0, and beta = 0 takes the series (u = 0) at any distance
+    far = dist > _RHO_CAP.get(dist.dtype, 1e19)
+    d_near = torch.where(far, torch.zeros_like(dist), dist)
+    u = (b2 * d_near) * d_near
+    tiny = (b2 <= 0) | (~far & (u < _SERIES_U))
     ut = torch.where(tiny, u, torch.zeros_like(u))
     # h(x) = (1 + x) e^{-x} = 1 - x^2/2 + x^3/3 - x^4/8 + x^5/30 - x^6/144 + x^7/840 - ..., x = sqrt(u)
     h = (1.0 + ut * (-0.5 + ut * (-0.125 - ut / 144.0))
@@ -265,13 +282,15 @@ def dipole_rd(
     st = sa_w + ss_w
     md = extra["distance_scale"].to(work) if "distance_scale" in extra else None
     # In units of z_r = 1/sigma_t' (module docstring); r = inf gives 0 with a zero gradient.
-    rho = _reduced_distance(r_w, st, md)
+    # rho up to the format's largest number (not the cumulative's cap): R_d ~ sigma_s' sigma_t' / rho^3 stays exact
+    # for huge coefficients at sigma_a = 0, where a cap on rho would leave a spurious floor
+    rho = _reduced_distance(r_w, st, md, cap=torch.finfo(work).max)
     zeta = 1.0 + 4.0 / 3.0 * dipole_boundary_a(et.to(work))  # z_v / z_r
     b2 = 3.0 * (sa_w / st)  # (sigma_tr z_r)^2 = 3 (1 - alpha')
-    any_small = is_tracing() or b2.device.type == "meta" or bool((b2 < _SERIES_U).any())  # u = b2 D^2 >= b2: else no series anywhere
-    rho2 = rho * rho
-    d_r = torch.sqrt(rho2 + 1.0)
-    d_v = torch.sqrt(rho2 + zeta * zeta)
+    # u = b2 D^2 >= b2: else no series anywhere (meta tensors hold no values: take both branches)
+    any_small = is_tracing() or b2.device.type == "meta" or bool((b2 < _SERIES_U).any())
+    d_r = _source_distance(rho, 1.0)
+    d_v = _source_distance(rho, zeta)
     rd = (_source_term(ss_w, st, b2, d_r, any_small) + zeta * _source_term(ss_w, st, b2, d_v, any_small)) / (
         4.0 * math.pi)
     if "irradiance_scale" in extra:
