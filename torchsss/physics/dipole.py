@@ -167,11 +167,11 @@ def _reduced_distance(r: Tensor, st: Tensor, md: Tensor | None, cap: float | Non
     """:math:`\\rho = r M_d \\sigma_t'`, the distance in units of :math:`z_r`, clamped to ``cap``.
 
     ``cap`` defaults to ``_RHO_CAP``; :func:`dipole_rd` passes the format's largest number and forms
-    :math:`\\sqrt{\\rho^2 + z^2}` with :func:`_source_distance`. ``r = inf`` is first clamped to the largest
-    finite number (zero gradient), so no :math:`\\infty \\cdot 0` reaches the gradient of :math:`\\sigma_t'` or :math:`M_d` (the double-where trick, with clamps); a product that
-    overflows or exceeds the cap is clamped to the cap, which passes a zero gradient to its (finite) factors. At the
-    default cap the cumulative's tail is 0 to below the format's smallest number for any
-    :math:`\\sigma_s'\\sigma_t' < 10^{11}` mm^-2 (float32; :math:`10^{126}` in float64).
+    :math:`\\sqrt{\\rho^2 + z^2}` with :func:`_source_distance`. ``r = inf`` is first clamped to the largest finite
+    number (zero gradient), so no :math:`\\infty \\cdot 0` reaches the gradient of :math:`\\sigma_t'` or :math:`M_d`
+    (the double-where trick, with clamps); a product that overflows or exceeds the cap is clamped to the cap, which
+    passes a zero gradient to its (finite) factors. At the default cap the cumulative's tail is 0 to below the format's
+    smallest number for any :math:`\\sigma_s'\\sigma_t' < 10^{11}` mm^-2 (float32; :math:`10^{126}` in float64).
     """
     r_c = r.clamp(max=torch.finfo(r.dtype).max)
     scale = st if md is None else md * st
