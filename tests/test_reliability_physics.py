@@ -542,3 +542,24 @@ def test_build_profile_table_keeps_gradients_through_float32_table_of_a_float16_
         assert p.grad is not None and p.grad.dtype == torch.float16 and torch.isfinite(p.grad).all()
     tab = build_profile_table(base, torch.full((3,), 5.0), 16)
     assert tab.values.dtype == torch.float32  # float32 nodes promote the float16 material's profile
+
+
+@pytest.mark.parametrize("dtype", FLOATS)
+@pytest.mark.parametrize("preset", ["spectralon", "skin1"])  # albedo 1 (sigma_a = 0) and an absorbing one
+@pytest.mark.parametrize("kind", ["dipole", "burley", "tabulated"])
+def test_every_material_module_at_r_zero_and_inf(kind, preset, dtype):
+    """Values and gradients of each module at r = 0 and r = inf: finite, d/dr = 0 at both ends (the profiles are
+    smooth functions of r^2 near 0 and vanish with all derivatives at inf), R_d(inf) = 0, parameter gradients
+    finite and zero at inf."""
+    material = material_module(preset, kind, dtype=dtype)
+    r = torch.tensor([[0.0], [INF]], dtype=dtype, requires_grad=True)
+    out = material(r)
+    assert bool(torch.isfinite(out).all()) and bool((out[0] > 0).all()) and bool((out[1] == 0).all())
+    grads = torch.autograd.grad(out.sum(), [r, *material.parameters()], allow_unused=True, retain_graph=True)
+    assert bool(torch.isfinite(grads[0]).all())
+    assert float(grads[0].abs().max()) == 0.0, f"d/dr at r = 0 and inf: {grads[0].flatten().tolist()}"
+    for g in grads[1:]:
+        assert g is None or bool(torch.isfinite(g).all())
+    at_inf = torch.autograd.grad(out[1].sum(), list(material.parameters()), allow_unused=True)
+    for g in at_inf:
+        assert g is None or float(g.abs().max()) == 0.0
