@@ -11,7 +11,7 @@ import sys
 import pytest
 import torch
 
-from torchsss.cli import main
+from torchsss.cli import main, output_paths
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.lights import DirectionalLight, PointLight
 from torchsss.geometry.procedural import plane, sphere
@@ -138,6 +138,29 @@ def test_cli_renders_default_scene(tmp_path):
     assert out.with_suffix(".png").stat().st_size > 0
     summary = json.loads(out.with_suffix(".json").read_text())
     assert summary["method"] == "reference" and summary["covered_pixels"] > 0
+
+
+def test_cli_out_png_keeps_the_linear_exr_beside_it(tmp_path, capsys):
+    """``--out x.png`` writes the PNG there and the EXR as x.exr (before: the EXR went to x.png, then the PNG
+    overwrote it, and the path was printed twice); another suffix is refused before anything renders."""
+    out = tmp_path / "shot.png"
+    assert main(["render", "default", "--out", str(out), "--resolution", "12x12", "--spacing", "3.0",
+                 "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    exr = out.with_suffix(".exr")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    img = read_exr(exr)
+    assert img.shape == (3, 12, 12) and float(img.max()) > 0
+    summary = json.loads(out.with_suffix(".json").read_text())
+    assert summary["exr"] == str(exr) and summary["png"] == str(out)
+    assert f"wrote {exr}, {out}, {out.with_suffix('.json')}" in printed
+    stem = tmp_path / "plain"
+    assert [p.name for p in output_paths(stem)] == ["plain.exr", "plain.png", "plain.json"]
+    with pytest.raises(SystemExit) as err:
+        main(["render", "default", "--out", str(tmp_path / "x.jpg"), "--resolution", "8x8", "--no-progress"])
+    assert err.value.code == 2
+    assert "out: expected a path ending in .exr or .png" in capsys.readouterr().err
+    assert not list(tmp_path.glob("x.*"))
 
 
 @pytest.mark.parametrize("name", ["stanford-bunny.obj", "teapot.obj", "igea.ply"])

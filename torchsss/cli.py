@@ -127,15 +127,40 @@ def _plot(curves: dict, r: torch.Tensor, path: Path) -> bool:
     return True
 
 
+def output_paths(out: Path) -> tuple[Path, Path, Path]:
+    """The EXR, PNG and JSON paths of a render written to ``out`` (the three files share the stem).
+
+    ``out`` may name the EXR (``x.exr``), the PNG (``x.png``: the EXR goes beside it as ``x.exr``) or just the stem
+    (``x``); any other suffix is refused, so that no file is written under a name that says another format.
+
+    Raises:
+        ValueError: a suffix other than ``.exr`` or ``.png``.
+
+    Examples:
+        >>> [p.name for p in output_paths(Path("out/x.png"))]
+        ['x.exr', 'x.png', 'x.json']
+    """
+    suffix = out.suffix.lower()
+    if suffix not in ("", ".exr", ".png"):
+        raise ValueError(f"out: expected a path ending in .exr or .png (the other image and the .json are written "
+                         f"beside it with the same stem), got {str(out)!r}")
+    stem = out.with_suffix("") if suffix else out
+    exr = out if suffix == ".exr" else stem.with_suffix(".exr")
+    png = out if suffix == ".png" else stem.with_suffix(".png")
+    return exr, png, stem.with_suffix(".json")
+
+
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
            resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None) -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
-    ``out`` is the EXR path; the PNG (tone-mapped) and the JSON (stats) go beside it with the same stem. The
+    ``out`` is the EXR or the PNG path (:func:`output_paths`); the other image (the PNG is tone-mapped) and the
+    JSON (stats) go beside it with the same stem. The
     method is built once; ``frames`` > 1 renders that many frames with the light orbiting the object and the
     JSON gets every frame's time (``frame_s``), their median and the fps; the image is the first frame.
     ``profile`` renders the scene's material with another profile model (``dipole``, ``burley``, ``tabulated``).
     """
+    exr, png, json_path = output_paths(out)
     path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
     scene = load_scene(path)
     if resolution is not None:
@@ -150,10 +175,9 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     t0 = time.perf_counter()
     result = render_scene(scene, method, dtype=dtype, frames=frames, **options)
     seconds = time.perf_counter() - t0
-    out.parent.mkdir(parents=True, exist_ok=True)
+    exr.parent.mkdir(parents=True, exist_ok=True)
     image = result.radiance[0].float()
-    write_exr(out, image)
-    png = out.with_suffix(".png")
+    write_exr(exr, image)
     write_png(png, tonemap(image))
     if scene.objects:
         what = {"objects": [{"mesh": o.mesh, "size_mm": o.size_mm, "translate": list(o.translate),
@@ -169,8 +193,8 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
                "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
                                          / max(1, int(result.mask.sum()))],
-               "stats": _jsonable(result.stats), "exr": str(out), "png": str(png)}
-    out.with_suffix(".json").write_text(json.dumps(summary, indent=2))
+               "stats": _jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
+    json_path.write_text(json.dumps(summary, indent=2))
     return summary
 
 
@@ -208,7 +232,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren = sub.add_parser("render", help="render a scene file with a method -> EXR, PNG, JSON")
     p_ren.add_argument("scene", help="scene JSON file, or 'default' for the built-in scene (spot, back-lit)")
     p_ren.add_argument("--method", default="reference", choices=sorted(METHODS), help="rendering method")
-    p_ren.add_argument("--out", type=Path, default=Path("out/render.exr"), help="output EXR (PNG, JSON beside)")
+    p_ren.add_argument("--out", type=Path, default=Path("out/render.exr"),
+                       help="output EXR or PNG (the other image and the JSON beside it)")
     p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
     p_ren.add_argument("--float64", action="store_true", help="integrate in float64")
     p_ren.add_argument("--spacing", type=float, default=None, help="reference: surface sample spacing in mm")
@@ -278,7 +303,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]
-        print(f"wrote {summary['exr']}, {summary['png']}, {args.out.with_suffix('.json')}")
+        print(f"wrote {summary['exr']}, {summary['png']}, {summary['json']}")
         head = (f"{summary['method']}: {summary['width']}x{summary['height']}, "
                 f"{summary['covered_pixels']} covered pixels")
         if "spacing_mm" in st:
