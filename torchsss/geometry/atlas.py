@@ -121,6 +121,9 @@ class Atlas:
         unassigned_faces: Number of faces whose uv triangle covers no texel centre. Their area is kept: in the
             chart's normalisation (``"jacobian"``) or folded into the chart texel nearest their uv centroid
             (``"face"``, and charts without any texel).
+        chart_id: :math:`(1, 1, H, W)` int64 chart of each valid texel (gutter texels: the chart of their face),
+            -1 elsewhere. Two texels in one chart are connected through the surface within the chart; texels of
+            different charts meet only at seams (or not at all), however close they lie in the atlas.
 
     Examples:
         >>> from torchsss.geometry.procedural import sphere
@@ -146,6 +149,7 @@ class Atlas:
     area: Tensor
     area_ratio: Tensor
     unassigned_faces: int
+    chart_id: Tensor | None = None
 
     def __repr__(self) -> str:
         return (
@@ -752,6 +756,7 @@ def _fill_gutters(
         area=image(area.to(dtype)),
         area_ratio=image(area_ratio.to(dtype)),
         unassigned_faces=int(unassigned.sum()),
+        chart_id=image(torch.where(flat_face >= 0, chart_of_face[flat_face.clamp_min(0)], -1)),
     )
 
 
