@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchsss.io import tonemap, write_exr, write_png
+from torchsss.io import auto_exposure, tonemap, write_exr, write_png
 from torchsss.physics import (
     chang_rp,
     dipole_rd,
@@ -151,7 +151,8 @@ def output_paths(out: Path) -> tuple[Path, Path, Path]:
 
 
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
-           resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None) -> dict:
+           resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None, spp: int = 1,
+           exposure_ev: float = 0.0) -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
     ``out`` is the EXR or the PNG path (:func:`output_paths`); the other image (the PNG is tone-mapped) and the
@@ -159,6 +160,9 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     method is built once; ``frames`` > 1 renders that many frames with the light orbiting the object and the
     JSON gets every frame's time (``frame_s``), their median and the fps; the image is the first frame.
     ``profile`` renders the scene's material with another profile model (``dipole``, ``burley``, ``tabulated``).
+    ``spp`` (a square) box-filters that many stratified sub-pixel samples per pixel. The PNG's exposure is automatic
+    over the object's pixels (:func:`~torchsss.io.auto_exposure`) plus ``exposure_ev`` stops; the JSON records the
+    multiplier (the EXR stays linear).
     """
     exr, png, json_path = output_paths(out)
     path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
@@ -173,12 +177,13 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
         else:
             scene = dataclasses.replace(scene, material=scene.material.with_profile(profile))
     t0 = time.perf_counter()
-    result = render_scene(scene, method, dtype=dtype, frames=frames, **options)
+    result = render_scene(scene, method, dtype=dtype, frames=frames, spp=spp, **options)
     seconds = time.perf_counter() - t0
     exr.parent.mkdir(parents=True, exist_ok=True)
     image = result.radiance[0].float()
     write_exr(exr, image)
-    write_png(png, tonemap(image))
+    exposure = auto_exposure(image, result.mask[0]) * 2.0 ** float(exposure_ev)
+    write_png(png, tonemap(image, exposure))
     if scene.objects:
         what = {"objects": [{"mesh": o.mesh, "size_mm": o.size_mm, "translate": list(o.translate),
                              "material": o.material.to_json()} for o in scene.objects]}
@@ -193,6 +198,7 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
                "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
                                          / max(1, int(result.mask.sum()))],
+               "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev,
                "stats": _jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
     json_path.write_text(json.dumps(summary, indent=2))
     return summary
@@ -260,6 +266,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
     p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")
+    p_ren.add_argument("--spp", type=int, default=1,
+                       help="samples per pixel, a square (4 = 2x2 stratified sub-pixel grid, box filter; default 1)")
+    p_ren.add_argument("--exposure", type=float, default=0.0,
+                       help="PNG exposure compensation in stops on top of the automatic exposure over the object "
+                            "(default 0; the EXR is linear)")
     p_ren.add_argument("--frames", type=int, default=1,
                        help="render N frames from one setup, the light orbiting the object; report the median frame "
                             "time and fps (default 1)")
@@ -299,7 +310,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution,
-                             frames=args.frames, profile=args.profile)
+                             frames=args.frames, profile=args.profile, spp=args.spp, exposure_ev=args.exposure)
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]

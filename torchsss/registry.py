@@ -31,6 +31,7 @@ from torchsss.pipelines import (
     render_reference_objects,
     render_splat_objects,
 )
+from torchsss.pipelines.renderer import box_downsample, supersample_camera
 from torchsss.scene import Scene
 
 __all__ = ["ENVIRONMENT_METHODS", "METHODS", "OBJECT_METHODS", "build_scene", "orbit_lights", "render_scene",
@@ -140,8 +141,11 @@ def orbit_lights(lights: Sequence[Light], frame: int, frames: int, *, centre: Se
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32, frames: int = 1,
-                 progress: bool = False, **knobs) -> RenderResult:
+                 progress: bool = False, spp: int = 1, **knobs) -> RenderResult:
     """Render ``scene`` with ``method``: build once, then ``frames`` frames with the lights orbiting the object.
+
+    ``spp`` (a square) renders each frame on a finer pixel grid and box-filters it back
+    (:meth:`~torchsss.pipelines.Renderer.render`): the pixel-integrated image.
 
     Returns the first frame's result (the scene's own lighting); its ``stats`` hold ``setup_s``, ``frame_s`` (a list
     with one time per frame), ``frame_median_s``, ``fps`` and the ``knobs``.
@@ -157,6 +161,7 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
     _check_method(scene, method)
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise ValueError(f"frames: expected an int >= 1, got {frames!r}")
+    fine, factor = supersample_camera(scene.camera, spp)
     first: RenderResult | None = None
     times: list[float] = []
     if len(scene.objects) > 1:
@@ -164,8 +169,8 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
         setup_s = 0.0
         for i in range(frames):
             t0 = time.perf_counter()
-            res = OBJECT_METHODS[method](objects, orbit_lights(scene.lights, i, frames), scene.camera, dtype=dtype,
-                                         progress=progress, **knobs)
+            res = box_downsample(OBJECT_METHODS[method](objects, orbit_lights(scene.lights, i, frames), fine,
+                                                        dtype=dtype, progress=progress, **knobs), factor)
             times.append(time.perf_counter() - t0)
             first = first or res
         assert first is not None
@@ -178,11 +183,11 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
         centre = tuple(float(v) for v in (mesh.vertices.amax(0) + mesh.vertices.amin(0)) / 2)
         for i in range(frames):
             res = renderer.render(orbit_lights(scene.lights, i, frames, centre=centre, axis=scene.camera.up),
-                                  scene.camera)
+                                  scene.camera, spp=spp)
             times.append(res.stats["frame_s"])
             first = first or res
         assert first is not None
     median = statistics.median(times)
-    first.stats.update(setup_s=setup_s, frame_s=times, frame_median_s=median, frames=frames,
+    first.stats.update(setup_s=setup_s, frame_s=times, frame_median_s=median, frames=frames, spp=factor * factor,
                        fps=1.0 / median if median > 0 else math.inf)
     return first

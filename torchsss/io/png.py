@@ -9,25 +9,63 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["tonemap", "write_png"]
+__all__ = ["auto_exposure", "tonemap", "write_png"]
 
 
-def tonemap(image: Tensor, exposure: float | None = None) -> Tensor:
-    """Map linear radiance to display values in [0, 1]: exposure, Reinhard :math:`x/(1+x)`, sRGB gamma.
+def auto_exposure(image: Tensor, subject: Tensor | None = None, percentile: float = 0.99) -> float:
+    """The exposure multiplier that puts the ``percentile`` of the subject's luminance at 1 (display white).
+
+    Args:
+        image: :math:`(C, H, W)` linear values.
+        subject: optional :math:`(H, W)` or :math:`(1, H, W)` bool mask of the pixels that matter (e.g. the
+            render's object mask): a bright floor or a caustic outside it neither darkens nor brightens the subject.
+            Default: every pixel with non-zero luminance.
+        percentile: in (0, 1].
+
+    Returns:
+        The multiplier (1.0 for an all-black subject).
+
+    Examples:
+        >>> img = torch.ones(3, 2, 2)
+        >>> img[:, 0, 0] = 100.0                                   # a highlight outside the subject
+        >>> auto_exposure(img, torch.tensor([[False, True], [True, True]]))
+        1.0
+    """
+    if not 0.0 < percentile <= 1.0:
+        raise ValueError(f"percentile: expected a number in (0, 1], got {percentile!r}")
+    lum = image.detach().to(torch.float32).clamp_min(0.0).mean(0)
+    if subject is not None:
+        mask = subject.reshape(lum.shape).bool()
+        lum = lum[mask]
+    lum = lum.flatten()
+    lum = lum[lum > 0]
+    if not lum.numel():
+        return 1.0
+    return 1.0 / float(torch.quantile(lum[:1_000_000], percentile))
+
+
+def tonemap(image: Tensor, exposure: float | None = None, *, ev: float = 0.0,
+            subject: Tensor | None = None) -> Tensor:
+    """Map linear radiance to display values in [0, 1]: exposure, a soft shoulder, sRGB gamma.
+
+    The documented tone map: :math:`x = E \\cdot 2^{ev} \\cdot L` per channel, then :math:`2x/(1+x)` (Reinhard's
+    curve scaled so that :math:`x = 1` is display white; linear with slope 2 near black, values above 1 clip), then
+    the sRGB transfer function.
 
     Args:
         image: :math:`(C, H, W)` linear values (>= 0).
-        exposure: multiplier; default puts the 99th percentile of the non-zero luminance at 1.
+        exposure: multiplier :math:`E`; default :func:`auto_exposure` over ``subject`` (the 99th percentile of its
+            non-zero luminance at 1).
+        ev: exposure compensation in stops (+1 doubles the exposure), applied on top of ``exposure``.
+        subject: :math:`(H, W)` bool mask for the automatic exposure (see :func:`auto_exposure`).
 
     Returns:
         :math:`(C, H, W)` float tensor in [0, 1].
     """
     img = image.detach().to(torch.float32).clamp_min(0.0)
     if exposure is None:
-        lum = img.mean(0).flatten()
-        lum = lum[lum > 0]
-        exposure = 1.0 / float(torch.quantile(lum[:1_000_000], 0.99)) if lum.numel() else 1.0
-    x = img * exposure
+        exposure = auto_exposure(img, subject)
+    x = img * (exposure * 2.0 ** float(ev))
     x = x / (1.0 + x) * 2.0  # Reinhard, rescaled so that the reference level 1 maps to 1
     x = x.clamp(0.0, 1.0)
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.pow(1 / 2.4) - 0.055)

@@ -13,12 +13,15 @@ the throughput pattern or the reference's sample spacing, no longer fit).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
@@ -27,7 +30,8 @@ from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
 from torchsss.physics.materials import Material
 
-__all__ = ["RenderResult", "Renderer", "check_dtype", "check_lights", "check_objects"]
+__all__ = ["RenderResult", "Renderer", "box_downsample", "check_dtype", "check_lights", "check_objects",
+           "supersample_camera"]
 
 
 @dataclass
@@ -45,6 +49,43 @@ class RenderResult:
     radiosity: Tensor
     mask: Tensor
     stats: dict = field(default_factory=dict)
+
+
+def supersample_camera(camera: Camera, spp: object) -> tuple[Camera, int]:
+    """The camera on a :math:`\\sqrt{spp}`-times finer pixel grid (same view) and the factor :math:`s`.
+
+    Raises:
+        TypeError: ``spp`` not an int.
+        ValueError: ``spp`` not a perfect square >= 1.
+
+    Examples:
+        >>> cam = Camera(eye=(0, 0, 50), target=(0, 0, 0), width=8, height=6)
+        >>> fine, s = supersample_camera(cam, 4)
+        >>> (fine.width, fine.height, s)
+        (16, 12, 2)
+    """
+    if isinstance(spp, bool) or not isinstance(spp, int):
+        raise TypeError(f"spp: expected an int (a square: 1, 4, 9, 16, ...), got {type(spp).__name__}")
+    s = math.isqrt(spp) if spp >= 1 else 0
+    if spp < 1 or s * s != spp:
+        raise ValueError(f"spp: expected a square >= 1 (1, 4, 9, 16, ...: an s x s grid per pixel), got {spp}")
+    if s == 1:
+        return camera, 1
+    return dataclasses.replace(camera, width=camera.width * s, height=camera.height * s), s
+
+
+def box_downsample(result: RenderResult, factor: int) -> RenderResult:
+    """Box-filter a render on a ``factor``-times finer grid back to the camera's pixels.
+
+    Radiance and radiosity are averaged over the :math:`s \\times s` sub-pixels (uncovered ones count as 0, so an
+    edge pixel holds the covered fraction of the light, the pixel integral); the mask is True where any sub-pixel
+    sees the object.
+    """
+    if factor == 1:
+        return result
+    down = {k: F.avg_pool2d(getattr(result, k), factor) for k in ("radiance", "radiosity")}
+    mask = F.max_pool2d(result.mask.to(down["radiance"].dtype), factor) > 0
+    return RenderResult(radiance=down["radiance"], radiosity=down["radiosity"], mask=mask, stats=dict(result.stats))
 
 
 def check_dtype(dtype: object) -> torch.dtype:
@@ -150,12 +191,17 @@ class Renderer:
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         raise NotImplementedError
 
-    def render(self, lights: Light | Sequence[Light], camera: Camera) -> RenderResult:
-        """Render one frame; ``stats`` gain ``method``, ``setup_s``, ``frame_s`` and ``knobs``.
+    def render(self, lights: Light | Sequence[Light], camera: Camera, *, spp: int = 1) -> RenderResult:
+        """Render one frame; ``stats`` gain ``method``, ``setup_s``, ``frame_s``, ``knobs`` and ``spp``.
 
         Args:
             lights: one light or a sequence of them (point, spot, directional; environment where supported).
             camera: the viewing camera (its resolution is the image's).
+            spp: samples per pixel, a square (1, 4, 9, 16, ...): the frame is rendered on an
+                :math:`\\sqrt{spp}`-times finer pixel grid (a stratified sub-pixel grid) and box-filtered back
+                (:func:`supersample_camera`, :func:`box_downsample`), so edges and shadow terminators are
+                pixel-integrated, as an independent reference or a path tracer produces them; costs ``spp`` times
+                the pixels.
 
         Returns:
             A :class:`RenderResult` (tensors of shape :math:`(1, 3, H, W)` and a :math:`(1, 1, H, W)` mask).
@@ -163,11 +209,13 @@ class Renderer:
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
         lights = check_lights(lights)
+        fine, factor = supersample_camera(camera, spp)
         t0 = time.perf_counter()
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
-            result = self._render(lights, camera)
+            result = box_downsample(self._render(lights, fine), factor)
         frame_s = time.perf_counter() - t0
-        result.stats.update(method=self.method, setup_s=self.setup_s, frame_s=frame_s, knobs=dict(self.knobs))
+        result.stats.update(method=self.method, setup_s=self.setup_s, frame_s=frame_s, knobs=dict(self.knobs),
+                            spp=factor * factor)
         return result
 
     def __repr__(self) -> str:

@@ -184,14 +184,14 @@ class SplatRenderer(Renderer):
             else int(k["grid"])
         self.module = SplatTranslucency(self.material, eps=k["eps"], method=k["splat_method"])
 
-    def render(self, lights, camera: Camera, mesh: Mesh | None = None) -> RenderResult:
+    def render(self, lights, camera: Camera, mesh: Mesh | None = None, *, spp: int = 1) -> RenderResult:
         """One frame (see :meth:`Renderer.render`); ``mesh`` replaces the built mesh's vertices (same topology)."""
         if mesh is not None:
             if not isinstance(mesh, Mesh) or mesh.faces.shape != self.mesh.faces.shape:
                 raise ValueError("mesh: expected a Mesh with the built mesh's faces (a deformed pose), got another "
                                  "topology")
             self.mesh = mesh.with_dtype(self.dtype)
-        return super().render(lights, camera)
+        return super().render(lights, camera, spp=spp)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, dtype, eta = self.knobs, self.mesh, self.dtype, self.eta
