@@ -190,7 +190,7 @@ def _source_distance(rho: Tensor, zz: Tensor | float) -> Tensor:
     return torch.where(far, rho, torch.sqrt(near * near + zz * zz))
 
 
-def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small: bool) -> Tensor:
+def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small: bool, far: bool = True) -> Tensor:
     """One dipole source in units of :math:`z_r`: ``scale`` :math:`\\cdot\\, \\sigma_t'\\, h(\\beta D) / D^3`.
 
     ``scale`` is :math:`\\sigma_s'`, ``dist`` is :math:`D = d / z_r \\ge 1` and ``b2`` is
@@ -211,10 +211,14 @@ def _source_term(scale: Tensor, st: Tensor, b2: Tensor, dist: Tensor, any_small:
     exact = prefix * (inv + beta) * torch.exp(-beta * dist)
     # u = (beta D)^2, squared only below the cap (double-where: b2 D D could overflow, and inf * 0 in the backward);
     # beyond it the exact form serves every beta > 0, and beta = 0 takes the series (u = 0) at any distance
-    far = dist > _RHO_CAP.get(dist.dtype, 1e19)
-    d_near = torch.where(far, torch.zeros_like(dist), dist)
-    u = (b2 * d_near) * d_near
-    tiny = (b2 <= 0) | (~far & (u < _SERIES_U))
+    if far:  # some D may exceed the cap (``far``: unknown or known to): guard the square
+        beyond = dist > _RHO_CAP.get(dist.dtype, 1e19)
+        d_near = torch.where(beyond, torch.zeros_like(dist), dist)
+        u = (b2 * d_near) * d_near
+        tiny = (b2 <= 0) | (~beyond & (u < _SERIES_U))
+    else:
+        u = (b2 * dist) * dist
+        tiny = u < _SERIES_U  # b2 = 0 gives u = 0: the series
     ut = torch.where(tiny, u, torch.zeros_like(u))
     # h(x) = (1 + x) e^{-x} = 1 - x^2/2 + x^3/3 - x^4/8 + x^5/30 - x^6/144 + x^7/840 - ..., x = sqrt(u)
     h = (1.0 + ut * (-0.5 + ut * (-0.125 - ut / 144.0))
@@ -289,10 +293,17 @@ def dipole_rd(
     b2 = 3.0 * (sa_w / st)  # (sigma_tr z_r)^2 = 3 (1 - alpha')
     # u = b2 D^2 >= b2: else no series anywhere (meta tensors hold no values: take both branches)
     any_small = is_tracing() or b2.device.type == "meta" or bool((b2 < _SERIES_U).any())
-    d_r = _source_distance(rho, 1.0)
-    d_v = _source_distance(rho, zeta)
-    rd = (_source_term(ss_w, st, b2, d_r, any_small) + zeta * _source_term(ss_w, st, b2, d_v, any_small)) / (
-        4.0 * math.pi)
+    # beyond _RHO_CAP the square would overflow: the guarded (double-where) forms; else the plain ones, cheaper
+    far = is_tracing() or rho.device.type == "meta" or bool((rho > _RHO_CAP.get(rho.dtype, 1e19)).any())
+    if far:
+        d_r = _source_distance(rho, 1.0)
+        d_v = _source_distance(rho, zeta)
+    else:
+        rho2 = rho * rho
+        d_r = torch.sqrt(rho2 + 1.0)
+        d_v = torch.sqrt(rho2 + zeta * zeta)
+    rd = (_source_term(ss_w, st, b2, d_r, any_small, far) + zeta * _source_term(ss_w, st, b2, d_v, any_small, far)
+          ) / (4.0 * math.pi)
     if "irradiance_scale" in extra:
         rd = rd * extra["irradiance_scale"].to(work)
     return rd.to(out_dtype)
