@@ -117,3 +117,25 @@ def assert_eta_gradient(f, shape, eta0: float = 1.3, h: float = 1e-6) -> torch.T
     assert torch.isfinite(grad) and grad != 0
     torch.testing.assert_close(grad, fd, rtol=1e-6, atol=0)
     return eta
+
+
+def caustic_plane_inputs(g: int = 8, half: float = 10.0) -> dict[str, torch.Tensor]:
+    """CausticMap inputs by name: a flat refracting layer at z = 5 mm over a floor at z = 0, lit from above.
+
+    A ``g x g`` light view over ``2 half`` mm (float64, directional light straight down, orthographic camera).
+    """
+    c = -half + (torch.arange(g, dtype=torch.float64) + 0.5) * 2 * half / g
+    y, x = torch.meshgrid(-c, c, indexing="ij")  # row 0 at the top (largest y)
+    surface = torch.stack([x, y, torch.full_like(x, 5.0)])[None]
+    normal = torch.zeros_like(surface)
+    normal[:, 2] = 1.0
+    mask = torch.ones(1, 1, g, g, dtype=torch.bool)
+    floor = torch.stack([x, y, torch.zeros_like(x)])[None]
+    light = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    vp = torch.zeros(1, 4, 4, dtype=torch.float64)
+    vp[0, 0, 0] = vp[0, 1, 1] = 1.0 / half
+    vp[0, 2, 2] = -0.01
+    vp[0, 3, 3] = 1.0
+    return {"front_position": surface, "front_normal": normal, "front_mask": mask, "back_position": surface.clone(),
+            "back_normal": normal.clone(), "back_mask": mask.clone(), "receiver_position": floor, "light": light,
+            "intensity": torch.ones(1, 1, dtype=torch.float64), "view_proj": vp}

@@ -21,6 +21,7 @@ import re
 
 import pytest
 import torch
+from conftest import caustic_plane_inputs
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -423,29 +424,11 @@ def test_reference_radiosity_finite_extremes_and_named_nan(data, dtype, n, m):
     _assert_error_names(err, name, index)
 
 
-def _caustic_inputs(g: int = 8, half: float = 10.0):
-    c = -half + (torch.arange(g, dtype=torch.float64) + 0.5) * 2 * half / g
-    y, x = torch.meshgrid(-c, c, indexing="ij")
-    surface = torch.stack([x, y, torch.full_like(x, 5.0)])[None]
-    normal = torch.zeros_like(surface)
-    normal[:, 2] = 1.0
-    mask = torch.ones(1, 1, g, g, dtype=torch.bool)
-    floor = torch.stack([x, y, torch.zeros_like(x)])[None]
-    light = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
-    vp = torch.zeros(1, 4, 4, dtype=torch.float64)
-    vp[0, 0, 0] = vp[0, 1, 1] = 1.0 / half
-    vp[0, 2, 2] = -0.01
-    vp[0, 3, 3] = 1.0
-    return {"front_position": surface, "front_normal": normal, "front_mask": mask, "back_position": surface.clone(),
-            "back_normal": normal.clone(), "back_mask": mask.clone(), "receiver_position": floor, "light": light,
-            "intensity": torch.ones(1, 1, dtype=torch.float64), "view_proj": vp}
-
-
 @FEW
 @given(data=st.data())
 def test_caustic_map_finite_extremes_and_named_nan(data):
     module = CausticMap(1.33, mode="single", iterations=2)
-    inputs = _caustic_inputs()
+    inputs = caustic_plane_inputs()
     inputs["intensity"] = data.draw(extreme_values((1, 1), torch.float64), label="intensity")
     out = module(**inputs)
     assert bool(torch.isfinite(out).all()) and bool((out >= 0).all())

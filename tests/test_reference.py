@@ -153,3 +153,31 @@ def test_bad_input(change, exc, match):
     args.update(change)
     with pytest.raises(exc, match=match):
         reference_radiosity(**args)
+
+
+def test_reference_radiosity_id_weight_generalises_the_ids_rule():
+    """``id_weight(r, same)`` multiplies each pair's kernel: the default rule is ``same``; a loop computes any."""
+    from torchsss.ops import reference_radiosity
+    from torchsss.ops.reference import pairwise_distance
+
+    g = torch.Generator().manual_seed(3)
+    src, dst = torch.rand(2, 7, 3, generator=g, dtype=torch.float64) * 4, torch.rand(2, 5, 3, generator=g,
+                                                                                      dtype=torch.float64) * 4
+    e, area = torch.rand(2, 7, 3, generator=g, dtype=torch.float64), torch.rand(2, 7, generator=g, dtype=torch.float64)
+    sid, did = torch.randint(2, (2, 7), generator=g), torch.randint(2, (2, 5), generator=g)
+
+    def profile(r):
+        return torch.exp(-r).expand(*r.shape[:-1], 3)
+
+    def weight(r, same):
+        return 1.0 - 0.5 * torch.exp(-r) * same.to(r.dtype)
+
+    got = reference_radiosity(src, e, area, dst, profile, src_ids=sid, dst_ids=did, id_weight=weight, max_pairs=6)
+    r = pairwise_distance(dst, src)
+    same = (did[:, :, None] == sid[:, None, :]).unsqueeze(-1)
+    loop = (profile(r) * weight(r, same) * (e * area.unsqueeze(-1))[:, None]).sum(2)
+    torch.testing.assert_close(got, loop)
+    plain = reference_radiosity(src, e, area, dst, profile, src_ids=sid, dst_ids=did)
+    torch.testing.assert_close(plain, (profile(r) * same * (e * area.unsqueeze(-1))[:, None]).sum(2))
+    with pytest.raises(ValueError, match="id_weight: expected a callable"):
+        reference_radiosity(src, e, area, dst, profile, id_weight=weight)

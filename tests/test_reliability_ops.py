@@ -15,6 +15,7 @@ import math
 
 import pytest
 import torch
+from conftest import caustic_plane_inputs
 
 import torchsss._checks as checks
 from torchsss._checks import check_devices, check_finite, check_nonnegative, check_positive, check_tensor
@@ -209,21 +210,8 @@ def test_newton_raphson_any_nonzero_direction_length(method):
 
 
 # -- 4. CausticMap: non-finite intensity ----------------------------------------------------------------------------
-def _caustic_inputs(g: int = 8, half: float = 10.0):
-    c = -half + (torch.arange(g, dtype=torch.float64) + 0.5) * 2 * half / g
-    y, x = torch.meshgrid(-c, c, indexing="ij")  # row 0 at the top (largest y)
-    surface = torch.stack([x, y, torch.full_like(x, 5.0)])[None]
-    normal = torch.zeros_like(surface)
-    normal[:, 2] = 1.0
-    mask = torch.ones(1, 1, g, g, dtype=torch.bool)
-    floor = torch.stack([x, y, torch.zeros_like(x)])[None]
-    light = torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
-    vp = torch.zeros(1, 4, 4, dtype=torch.float64)
-    vp[0, 0, 0] = vp[0, 1, 1] = 1.0 / half
-    vp[0, 2, 2] = -0.01
-    vp[0, 3, 3] = 1.0
-    return [surface, normal, mask, surface.clone(), normal.clone(), mask.clone(), floor, light,
-            torch.ones(1, 1, dtype=torch.float64), vp]
+def _caustic_inputs() -> list:
+    return list(caustic_plane_inputs().values())  # positional, in forward()'s order
 
 
 def test_caustic_map_rejects_non_finite_intensity():

@@ -251,7 +251,7 @@ def check_finite(x: Tensor, name: str) -> None:
 def check_finite_inputs(inputs: Mapping[str, Tensor | None], where: Tensor | None = None) -> None:
     """Run :func:`check_finite` on each named input (``None`` entries skipped), in order.
 
-    ``where`` (broadcastable to each input, bool) restricts the check to entries that are used, e.g. the pixels
+    ``where`` (bool, expandable to each input's shape) restricts the check to entries that are used, e.g. the pixels
     of a mask (positions off the mask may hold anything).
 
     Examples:
@@ -267,8 +267,8 @@ def check_finite_inputs(inputs: Mapping[str, Tensor | None], where: Tensor | Non
             continue
         bad = ~torch.isfinite(x)
         if where is not None:
-            bad = bad & where
-        _report(x, bad.expand(x.shape) if bad.shape != x.shape else bad, name, "finite values")
+            bad = bad & where.expand_as(bad)
+        _report(x, bad, name, "finite values")
 
 
 def check_nonnegative(x: Tensor, name: str, allow_inf: bool = False) -> None:

@@ -59,7 +59,7 @@ from torchsss._checks import (
 )
 from torchsss.modules.sampling import IcdfSampler
 from torchsss.ops.icdf import MAX_LEVELS
-from torchsss.ops.reference import DEFAULT_MAX_PAIRS, pairwise_distance, reference_radiosity
+from torchsss.ops.reference import DEFAULT_MAX_PAIRS, reference_radiosity
 from torchsss.physics.budget import chang_rp, chang_weights
 
 __all__ = ["ChangLocalProfile", "HybridTranslucency", "ImportanceSampledTranslucency", "SplitProfile"]
@@ -563,22 +563,26 @@ class HybridTranslucency(nn.Module):
         mass = self.membership @ self._interval_mass(self.radii)  # (pieces, C)
         return self.point_share.to(mass.dtype) @ mass
 
-    def local(self, irradiance: Tensor, receivers_uv: Tensor, receivers: Tensor | None = None) -> Tensor:
+    def _receiver_texels(self, receivers_uv: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Continuous pixel coordinates ``(px, py)`` of atlas uvs (v up) and their texel ``(row, col)``."""
+        h, w = self.global_term.shape
+        px = receivers_uv[..., 0] * w
+        py = (1.0 - receivers_uv[..., 1]) * h
+        return px, py, py.detach().floor().long().clamp(0, h - 1), px.detach().floor().long().clamp(0, w - 1)
+
+    def local(self, irradiance: Tensor, receivers_uv: Tensor) -> Tensor:
         r"""Local term :math:`(B, M, C)` at receivers given by atlas uv :math:`(B, M, 2)`.
 
-        With chart ids (and ``receivers`` :math:`(B, M, 3)`), a pattern point counts only if its texel lies in the
-        receiver's chart, and its weight is rescaled from the planar radius of the pattern to the 3-D distance
-        :math:`d` between the receiver and the surface point it reads: :math:`w_p\,f(d)/f(r_p)`,
-        :math:`f = R_d W_l^b`, the integrand the global term leaves out for sources of the same chart.
+        With chart ids, a pattern point counts only if its texel lies in the receiver's chart, and its weight is
+        rescaled from the planar radius of the pattern to the 3-D distance :math:`d` between the surface points the
+        atlas holds at the centre and at the point: :math:`w_p\,f(d)/f(r_p)`, :math:`f = R_d W_l^b`, the integrand
+        the global term leaves out for sources of the same chart.
         """
         b, _, h, w = irradiance.shape
         e = irradiance * self.lookup_mask
         if self.global_term.irradiance_scale is not None:
             e = e * self.global_term.irradiance_scale
-        px = receivers_uv[..., 0] * w
-        py = (1.0 - receivers_uv[..., 1]) * h
-        col = px.detach().floor().long().clamp(0, w - 1)
-        row = py.detach().floor().long().clamp(0, h - 1)
+        px, py, row, col = self._receiver_texels(receivers_uv)
         idx = (row * w + col).unsqueeze(1).expand(-1, 4, -1)
         fr = torch.gather(self.frames.flatten(2).expand(b, -1, -1), 2, idx).to(e.dtype)  # (B, 4, M)
         a, bb = self.pattern[:, 0].to(e.dtype), self.pattern[:, 1].to(e.dtype)  # (P,)
@@ -589,7 +593,7 @@ class HybridTranslucency(nn.Module):
         grid = torch.stack([gx, gy], -1)
         vals = F.grid_sample(e, grid, mode="bilinear", padding_mode="zeros", align_corners=False)  # (B, C, M, P)
         wts = self.point_weights().to(e.dtype)  # (P, C)
-        if self.chart_id is None or receivers is None:
+        if self.chart_id is None:
             return torch.einsum("bcmp,pc->bmc", vals, wts)
         # the pattern point's texel must lie in the receiver's chart
         qx = (px.unsqueeze(-1) + dx).detach().floor().long()
@@ -622,33 +626,18 @@ class HybridTranslucency(nn.Module):
         """
         g = self.global_term
         src_pos, src_e, inv, ds, idx = g._draw(irradiance, u, dims)
-        b, m = dims["B"], dims["M"]
-        h, w = g.shape
+        if not is_tracing() and dims["M"] == 0:
+            return src_e.new_zeros(dims["B"], 0, max(dims["C"], _material_channels(self.material) or 1))
+        w = g.shape[1]
         charts = self.chart_id.reshape(-1)
-        src_chart = charts[idx]  # (B, N)
-        col = (receivers_uv[..., 0] * w).detach().floor().long().clamp(0, w - 1)
-        row = ((1.0 - receivers_uv[..., 1]) * h).detach().floor().long().clamp(0, h - 1)
-        dst_chart = charts[row * w + col]  # (B, M)
-        weight = src_e * inv.to(src_e.dtype).unsqueeze(-1)
-        dst = receivers.to(src_e.dtype)
-        c = max(src_e.shape[-1], _material_channels(self.material) or 1)
-        n = src_pos.shape[1]
-        m_chunk = max(1, min(m, 4096, g.max_pairs))
-        n_chunk = max(1, min(n, g.max_pairs // m_chunk))
-        out = []
-        for m0 in range(0, m, m_chunk):
-            m1 = min(m, m0 + m_chunk)
-            acc = src_e.new_zeros(b, m1 - m0, c)
-            for n0 in range(0, n, n_chunk):
-                n1 = min(n, n0 + n_chunk)
-                r = pairwise_distance(dst[:, m0:m1], src_pos[:, n0:n1])  # (B, m, n, 1)
-                if ds is not None:
-                    r = r * ds[:, None, n0:n1]
-                same = (dst_chart[:, m0:m1, None] == src_chart[:, None, n0:n1]).unsqueeze(-1).to(r.dtype)
-                kern = self.material(r) * (1.0 - self.local_weight(r) * same)
-                acc = acc + (kern * weight[:, None, n0:n1]).sum(2)
-            out.append(acc)
-        return torch.cat(out, dim=1) if out else src_e.new_zeros(b, 0, c)
+        _, _, row, col = self._receiver_texels(receivers_uv)
+
+        def id_weight(r: Tensor, same: Tensor) -> Tensor:
+            return 1.0 - self.local_weight(r) * same.to(r.dtype)
+
+        return reference_radiosity(src_pos, src_e, inv.to(src_e.dtype), receivers.to(src_e.dtype), self.material,
+                                   src_distance_scale=ds, src_ids=charts[idx], dst_ids=charts[row * w + col],
+                                   id_weight=id_weight, max_pairs=g.max_pairs)
 
     def forward(self, irradiance: Tensor, u: Tensor, receivers: Tensor, receivers_uv: Tensor) -> Tensor:
         """:math:`B_l + B_g` :math:`(B, M, C)`; arguments as :meth:`ImportanceSampledTranslucency.forward` plus uv.
@@ -666,4 +655,4 @@ class HybridTranslucency(nn.Module):
         uv = receivers_uv.to(irradiance.dtype)
         if self.chart_id is None:
             return self.global_term(irradiance, u, receivers) + self.local(irradiance, uv)
-        return self.global_split(irradiance, u, receivers, uv, dims) + self.local(irradiance, uv, receivers)
+        return self.global_split(irradiance, u, receivers, uv, dims) + self.local(irradiance, uv)

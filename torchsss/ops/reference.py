@@ -61,6 +61,7 @@ def reference_radiosity(
     src_irradiance_scale: Tensor | None = None,
     src_ids: Tensor | None = None,
     dst_ids: Tensor | None = None,
+    id_weight: Callable[[Tensor, Tensor], Tensor] | None = None,
     max_pairs: int = DEFAULT_MAX_PAIRS,
 ) -> Tensor:
     """Radiosity :math:`B(x_o) = \\sum_i E_i\\, A_i\\, M_{i,i}\\, R(|x_i - x_o| M_{d,i})` over all pairs.
@@ -84,6 +85,9 @@ def reference_radiosity(
         src_ids: optional :math:`(B, N)` integer object ids of the sources; a pair whose ids differ does not
             interact (Shah 6.4.3). Give both ``src_ids`` and ``dst_ids`` or neither.
         dst_ids: optional :math:`(B, M)` integer object ids of the receivers.
+        id_weight: optional ``(r, same) -> factor`` that replaces the ids' all-or-nothing rule: the kernel of a
+            pair is ``profile(r) * id_weight(r, same)``, ``same`` :math:`(B, m, n, 1)` bool (the ids agree), e.g.
+            the hybrid's global part :math:`1 - W_l(r)\\,[same]` (sources in another chart stay whole).
         max_pairs: pair budget per chunk (>= 1).
 
     Returns:
@@ -146,6 +150,8 @@ def reference_radiosity(
         check_finite(src_distance_scale, "src_distance_scale")
     if (src_ids is None) != (dst_ids is None):
         raise ValueError("src_ids, dst_ids: expected both or neither, got only one")
+    if id_weight is not None and (src_ids is None or not callable(id_weight)):
+        raise ValueError("id_weight: expected a callable (r, same) -> factor together with src_ids and dst_ids")
     if src_ids is not None:
         for name, ids, pattern in (("src_ids", src_ids, "B,N"), ("dst_ids", dst_ids, "B,M")):
             if not isinstance(ids, Tensor) or ids.is_floating_point() or ids.is_complex():
@@ -170,8 +176,8 @@ def reference_radiosity(
                 r = r * src_distance_scale[:, None, n0:n1].to(work)
             kern = profile(r)  # (B, m, n, C)
             if src_ids is not None:
-                same = dst_ids[:, m0:m1, None] == src_ids[:, None, n0:n1]
-                kern = kern * same.unsqueeze(-1).to(kern.dtype)
+                same = (dst_ids[:, m0:m1, None] == src_ids[:, None, n0:n1]).unsqueeze(-1)
+                kern = kern * (same.to(kern.dtype) if id_weight is None else id_weight(r, same))
             acc = acc + (kern * weight[:, None, n0:n1]).sum(2)
         out.append(acc)
     result = torch.cat(out, dim=1)
