@@ -3,6 +3,8 @@
 Commands:
     profiles   evaluate the dipole profile of every Jensen 2001 preset and write EXR, PNG and JSON summaries.
     render     render a scene file (or the built-in default scene) with a method; write EXR, PNG and JSON.
+    plan       print the planner's choice (method, knobs, modelling, predicted error and time) for a tolerance.
+    trade      measure a scene's speed/accuracy trade: every method over a knob sweep; write JSON and a plot.
 """
 
 from __future__ import annotations
@@ -32,10 +34,12 @@ from torchsss.physics import (
     total_diffuse_reflectance,
 )
 from torchsss.physics.materials import PROFILES
+from torchsss.plan import Plan, plan
 from torchsss.registry import METHODS, render_scene
-from torchsss.scene import default_scene_path, load_scene
+from torchsss.scene import Scene, default_scene_path, load_scene
+from torchsss.trade import trade, write_trade
 
-__all__ = ["main", "profiles", "render"]
+__all__ = ["main", "plan_command", "profiles", "render", "trade_command"]
 
 
 def _radial_quadrature(f, z_r: float, panels: int = 256, order: int = 16) -> torch.Tensor:
@@ -152,7 +156,7 @@ def output_paths(out: Path) -> tuple[Path, Path, Path]:
 
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
            resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None, spp: int = 1,
-           exposure_ev: float = 0.0) -> dict:
+           exposure_ev: float = 0.0, tolerance: float = 0.02, explicit: dict | None = None) -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
     ``out`` is the EXR or the PNG path (:func:`output_paths`); the other image (the PNG is tone-mapped) and the
@@ -163,13 +167,13 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     ``spp`` (a square) box-filters that many stratified sub-pixel samples per pixel. The PNG's exposure is automatic
     over the object's pixels (:func:`~torchsss.io.auto_exposure`) plus ``exposure_ev`` stops; the JSON records the
     multiplier (the EXR stays linear).
+
+    ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
+    scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with ``explicit`` knob flags
+    (:data:`KNOB_FLAGS` dests) on top; the JSON gets the plan (``"plan"``).
     """
     exr, png, json_path = output_paths(out)
-    path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
-    scene = load_scene(path)
-    if resolution is not None:
-        scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, height=resolution[0],
-                                                                      width=resolution[1]))
+    path, scene = _scene(scene_arg, resolution)
     if profile is not None:
         if scene.objects:
             scene = dataclasses.replace(scene, objects=tuple(
@@ -177,10 +181,21 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
         else:
             scene = dataclasses.replace(scene, material=scene.material.with_profile(profile))
     t0 = time.perf_counter()
+    planned = None
+    if method == "auto":
+        explicit = dict(explicit or {})
+        if scene.caustics is not None:
+            method = "caustics"
+            options = {**options, **method_knobs(method, explicit, {})}
+        else:
+            planned = plan(scene, tolerance, frames, methods=_methods_for(explicit))
+            scene = planned.scene(scene)
+            method = planned.method
+            options = {**options, **method_knobs(method, explicit, planned.knobs)}
     result = render_scene(scene, method, dtype=dtype, frames=frames, spp=spp, **options)
     seconds = time.perf_counter() - t0
     exr.parent.mkdir(parents=True, exist_ok=True)
-    image = result.radiance[0].float()
+    image = result.radiance[0].detach().float()
     write_exr(exr, image)
     exposure = auto_exposure(image, result.mask[0]) * 2.0 ** float(exposure_ev)
     write_png(png, tonemap(image, exposure))
@@ -200,8 +215,43 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                                          / max(1, int(result.mask.sum()))],
                "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev,
                "stats": _jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
+    if planned is not None:
+        p = planned.to_json()
+        p["candidates"] = p["candidates"][:10]
+        summary["plan"] = _jsonable(p)
     json_path.write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _scene(scene_arg: str, resolution: tuple[int, int] | None) -> tuple[Path, Scene]:
+    """The scene file (``default``: the shipped scene) and its scene, with the camera resized if asked."""
+    path = default_scene_path() if scene_arg == "default" and not Path(scene_arg).exists() else Path(scene_arg)
+    scene = load_scene(path)
+    if resolution is not None:
+        scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, height=resolution[0],
+                                                                      width=resolution[1]))
+    return path, scene
+
+
+def plan_command(scene_arg: str, *, tolerance: float, frames: int, resolution: tuple[int, int] | None = None,
+                 json_out: Path | None = None) -> Plan:
+    """``python -m torchsss plan``: plan the scene's render (no rendering); optionally write the plan's JSON."""
+    _, scene = _scene(scene_arg, resolution)
+    p = plan(scene, tolerance, frames)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(_jsonable(p.to_json()), indent=2))
+    return p
+
+
+def trade_command(scene_arg: str, out: Path, *, quick: bool = False, resolution: tuple[int, int] | None = None,
+                  methods: Sequence[str] | None = None, frames: int | None = None, progress: bool = True) -> dict:
+    """``python -m torchsss trade``: measure the scene's trade (:func:`torchsss.trade.trade`) into ``out``."""
+    _, scene = _scene(scene_arg, resolution)
+    result = trade(scene, methods=methods, quick=quick, frames=frames, progress=progress)
+    js, png = write_trade(result, out)
+    result["json"], result["png"] = str(js), None if png is None else str(png)
+    return result
 
 
 def _jsonable(value: object) -> object:
@@ -215,6 +265,90 @@ def _jsonable(value: object) -> object:
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     return value
+
+
+#: Per-method knob flags of ``render``: argparse dest -> (knob, the methods that take it, default).
+KNOB_FLAGS: dict[str, tuple[str, frozenset[str], object]] = {
+    "spacing": ("spacing_mm", frozenset({"reference"}), None),
+    "shadows": ("shadows", frozenset({"reference"}), "raytrace"),
+    "eps": ("eps", frozenset({"reference", "splat"}), 0.01),
+    "atlas_resolution": ("atlas_resolution", frozenset({"lensch", "icdf", "hybrid"}), 512),
+    "kernel_size": ("kernel_size", frozenset({"lensch"}), None),
+    "threshold": ("threshold", frozenset({"lensch"}), 1e-5),
+    "blend": ("blend", frozenset({"lensch"}), None),
+    "samples": ("samples", frozenset({"icdf", "hybrid"}), 4096),
+    "seed": ("seed", frozenset({"icdf", "hybrid"}), 0),
+    "split_c": ("c", frozenset({"hybrid"}), 0.1),
+    "caustic_grid": ("grid", frozenset({"caustics"}), None),
+}
+
+
+def _knob_arguments(p: argparse.ArgumentParser) -> None:
+    """The per-method knob flags (:data:`KNOB_FLAGS`); unset flags are None (the method's or the plan's value)."""
+    p.add_argument("--spacing", type=float, default=None, help="reference: surface sample spacing in mm")
+    p.add_argument("--eps", type=float, default=None,
+                   help="reference: tolerance of the default spacing; splat: the splat budget's tolerance (0.01)")
+    p.add_argument("--shadows", default=None, choices=["raytrace", "shadowmap", "none"],
+                   help="reference: visibility of the lights (default raytrace)")
+    p.add_argument("--atlas-resolution", type=int, default=None,
+                   help="lensch/icdf/hybrid: texture atlas size (texels; default 512)")
+    p.add_argument("--kernel-size", type=int, default=None,
+                   help="lensch: local kernel size k (odd); default: planned from the vertex spacing (5-11)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="lensch: throughput threshold relative to the largest entry (default 1e-5)")
+    p.add_argument("--blend", choices=["auto", "on", "off"], default=None,
+                   help="lensch: the local/global blending of §5.4 (auto: planned from the vertex spacing)")
+    p.add_argument("--no-blend", action="store_true", help="lensch: same as --blend off")
+    p.add_argument("--samples", type=int, default=None,
+                   help="icdf/hybrid: importance samples N per frame (default 4096)")
+    p.add_argument("--seed", type=int, default=None, help="icdf/hybrid: seed of the scrambled Sobol uniforms (0)")
+    p.add_argument("--caustic-grid", type=int, default=None,
+                   help="caustics: light-view grid size (default: the scene's caustics.grid)")
+    p.add_argument("--split-c", type=float, default=None,
+                   help="hybrid: bound c of the split radius R_p (default 0.1; benchmarks/results/chang.md)")
+
+
+def _explicit_knobs(args: argparse.Namespace) -> dict[str, object]:
+    """The knob flags the user gave, by argparse dest (validated)."""
+    if args.no_blend:
+        args.blend = "off"
+    explicit = {dest: getattr(args, dest) for dest in KNOB_FLAGS if getattr(args, dest) is not None}
+    if "blend" in explicit:
+        explicit["blend"] = {"auto": None, "on": True, "off": False}[explicit["blend"]]
+    if "eps" in explicit and not 0 < explicit["eps"] < 1:
+        raise ValueError(f"eps: expected a value in (0, 1), got {explicit['eps']}")
+    return explicit
+
+
+def method_knobs(method: str, explicit: dict[str, object], planned: dict | None = None) -> dict:
+    """``method``'s knobs: its CLI defaults (or the plan's knobs), overridden by the flags the user gave.
+
+    Raises:
+        ValueError: a flag that ``method`` does not take (naming the methods that do).
+    """
+    for dest in explicit:
+        methods = KNOB_FLAGS[dest][1]
+        if method not in methods:
+            raise ValueError(f"--{dest.replace('_', '-')}: applies to {', '.join(sorted(methods))}, got --method "
+                             f"{method}")
+    if planned is not None:
+        knobs = dict(planned)
+    else:
+        knobs = {k: d for dest, (k, methods, d) in KNOB_FLAGS.items() if method in methods and d is not None}
+    knobs.update({KNOB_FLAGS[dest][0]: v for dest, v in explicit.items()})
+    return knobs
+
+
+def _methods_for(explicit: dict[str, object]) -> list[str] | None:
+    """The methods that take every given flag (None: no flag given)."""
+    if not explicit:
+        return None
+    common = frozenset.intersection(*(KNOB_FLAGS[d][1] for d in explicit))
+    if not common:
+        raise ValueError(f"knobs: expected flags that one method takes together, got "
+                         f"{', '.join('--' + d.replace('_', '-') for d in explicit)}")
+    return sorted(common)
+
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -237,32 +371,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_prof.add_argument("--no-plot", action="store_true", help="skip matplotlib; write a tone-mapped preview")
     p_ren = sub.add_parser("render", help="render a scene file with a method -> EXR, PNG, JSON")
     p_ren.add_argument("scene", help="scene JSON file, or 'default' for the built-in scene (spot, back-lit)")
-    p_ren.add_argument("--method", default="reference", choices=sorted(METHODS), help="rendering method")
+    p_ren.add_argument("--method", default="auto", choices=["auto", *sorted(METHODS)],
+                       help="rendering method (default auto: the planner's choice for --tolerance)")
+    p_ren.add_argument("--tolerance", type=float, default=None,
+                       help="auto: relative RMSE against the reference to meet at least cost (default 0.02)")
     p_ren.add_argument("--out", type=Path, default=Path("out/render.exr"),
                        help="output EXR or PNG (the other image and the JSON beside it)")
     p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
     p_ren.add_argument("--float64", action="store_true", help="integrate in float64")
-    p_ren.add_argument("--spacing", type=float, default=None, help="reference: surface sample spacing in mm")
-    p_ren.add_argument("--eps", type=float, default=0.01,
-                       help="reference: tolerance of the default spacing; splat: the splat budget's tolerance")
-    p_ren.add_argument("--shadows", default="raytrace", choices=["raytrace", "shadowmap", "none"],
-                       help="reference: visibility of the lights")
-    p_ren.add_argument("--atlas-resolution", type=int, default=512,
-                       help="lensch/icdf/hybrid: texture atlas size (texels)")
-    p_ren.add_argument("--kernel-size", type=int, default=None,
-                       help="lensch: local kernel size k (odd); default: planned from the vertex spacing (5-11)")
-    p_ren.add_argument("--threshold", type=float, default=1e-5,
-                       help="lensch: throughput threshold relative to the largest entry")
-    p_ren.add_argument("--blend", choices=["auto", "on", "off"], default="auto",
-                       help="lensch: the local/global blending of §5.4 (auto: planned from the vertex spacing)")
-    p_ren.add_argument("--no-blend", action="store_true", help="lensch: same as --blend off")
-    p_ren.add_argument("--samples", type=int, default=4096,
-                       help="icdf/hybrid: importance samples N per frame (default 4096)")
-    p_ren.add_argument("--seed", type=int, default=0, help="icdf/hybrid: seed of the scrambled Sobol uniforms")
-    p_ren.add_argument("--caustic-grid", type=int, default=None,
-                       help="caustics: light-view grid size (default: the scene's caustics.grid)")
-    p_ren.add_argument("--split-c", type=float, default=0.1,
-                       help="hybrid: bound c of the split radius R_p (default 0.1; benchmarks/results/chang.md)")
+    _knob_arguments(p_ren)
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
     p_ren.add_argument("--roughness", type=float, default=0.3, help="GGX alpha of --specular (default 0.3)")
@@ -277,40 +394,68 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--profile", choices=list(PROFILES), default=None,
                        help="render the scene's material with this profile model (default: the scene's, dipole)")
     p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    p_plan = sub.add_parser("plan", help="print the planned method and knobs for a tolerance (no rendering)")
+    p_plan.add_argument("scene", help="scene JSON file, or 'default'")
+    p_plan.add_argument("--tolerance", type=float, default=0.02, help="relative RMSE to meet (default 0.02)")
+    p_plan.add_argument("--frames", type=int, default=1, help="frames that follow one setup (default 1)")
+    p_plan.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 256x256")
+    p_plan.add_argument("--json", type=Path, default=None, help="also write the plan (all candidates) as JSON")
+    p_trade = sub.add_parser("trade", help="measure the speed/accuracy trade of a scene -> trade.json, trade.png")
+    p_trade.add_argument("scene", help="scene JSON file, or 'default'")
+    p_trade.add_argument("--out", type=Path, default=Path("out/trade"), help="output directory (default out/trade)")
+    p_trade.add_argument("--quick", action="store_true", help="a small sweep (about a minute at 64x64)")
+    p_trade.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 64x64")
+    p_trade.add_argument("--methods", nargs="+", default=None, help="methods to sweep (default: all applicable)")
+    p_trade.add_argument("--frames", type=int, default=None, help="frames per configuration (default 3, quick 2)")
+    p_trade.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = parser.parse_args(argv)
-    if args.command == "render":
-        if not 0 < args.eps < 1:
-            parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")
-        options = {"progress": not args.no_progress}
-        if args.specular:
-            options.update(specular=True, roughness=args.roughness)
+    if args.command == "plan":
+        if not 0 < args.tolerance < 1:
+            parser.error(f"--tolerance: expected a value in (0, 1), got {args.tolerance}")
         if args.frames < 1:
             parser.error(f"--frames: expected an int >= 1, got {args.frames}")
-        if args.method == "reference":
-            options.update(eps=args.eps, shadows=args.shadows)
-            if args.spacing is not None:
-                options["spacing_mm"] = args.spacing
-        elif args.method == "lensch":
-            options.update(atlas_resolution=args.atlas_resolution, kernel_size=args.kernel_size,
-                           threshold=args.threshold,
-                           blend=False if args.no_blend else {"auto": None, "on": True, "off": False}[args.blend])
-        elif args.method == "splat":
-            options["eps"] = args.eps
-        elif args.method == "caustics":
-            if args.specular:
-                parser.exit(2, "torchsss render: error: specular: expected off for --method caustics (the refractor "
-                               "shows Fresnel reflection of a uniform environment instead), got on\n")
-            options = {"progress": options["progress"]}
-            if args.caustic_grid is not None:
-                options["grid"] = args.caustic_grid
-        elif args.method in ("icdf", "hybrid"):
-            options.update(atlas_resolution=args.atlas_resolution, samples=args.samples, seed=args.seed)
-            if args.method == "hybrid":
-                options["c"] = args.split_c
         try:
+            p = plan_command(args.scene, tolerance=args.tolerance, frames=args.frames, resolution=args.resolution,
+                             json_out=args.json)
+        except (ValueError, TypeError) as err:
+            parser.exit(2, f"torchsss plan: error: {err}\n")
+        print(p)
+    if args.command == "trade":
+        try:
+            result = trade_command(args.scene, args.out, quick=args.quick, resolution=args.resolution,
+                                   methods=args.methods, frames=args.frames, progress=not args.no_progress)
+        except (ValueError, TypeError) as err:
+            parser.exit(2, f"torchsss trade: error: {err}\n")
+        print(f"wrote {result['json']}" + (f", {result['png']}" if result["png"] else " (no matplotlib: no plot)"))
+        ref = result["reference"]
+        print(f"reference: setup {ref['setup_s']:.2f} s, frame {ref['frame_s']:.2f} s")
+        print(f"{'method':<10} {'knobs':<40} {'setup s':>8} {'frame s':>8} {'rel RMSE':>9} {'max err':>8} {'MiB':>6}")
+        for i, row in enumerate(result["rows"]):
+            mark = " *" if i in result["pareto"] else ""
+            print(f"{row['method']:<10} {json.dumps(row['knobs']):<40} {row['setup_s']:8.2f} {row['frame_s']:8.3f} "
+                  f"{row['rel_rmse']:9.2%} {row['max_error']:8.2%} {row['peak_mib']:6.0f}{mark}")
+        print("* on the Pareto front (error vs frame time)")
+    if args.command == "render":
+        if args.frames < 1:
+            parser.error(f"--frames: expected an int >= 1, got {args.frames}")
+        if args.tolerance is not None and not 0 < args.tolerance < 1:
+            parser.error(f"--tolerance: expected a value in (0, 1), got {args.tolerance}")
+        if args.tolerance is not None and args.method != "auto":
+            parser.error(f"--tolerance: applies to --method auto (the planner), got --method {args.method}")
+        try:
+            explicit = _explicit_knobs(args)
+            options = {"progress": not args.no_progress}
+            if args.specular:
+                if args.method == "caustics":
+                    raise ValueError("specular: expected off for --method caustics (the refractor shows Fresnel "
+                                     "reflection of a uniform environment instead), got on")
+                options.update(specular=True, roughness=args.roughness)
+            if args.method != "auto":
+                options.update(method_knobs(args.method, explicit))
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution,
-                             frames=args.frames, profile=args.profile, spp=args.spp, exposure_ev=args.exposure)
+                             frames=args.frames, profile=args.profile, spp=args.spp, exposure_ev=args.exposure,
+                             tolerance=0.02 if args.tolerance is None else args.tolerance, explicit=explicit)
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]
@@ -327,6 +472,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.frames > 1:
             head += f" (median of {args.frames}, {summary['fps']:.2f} fps)"
         print(f"{head}, {summary['seconds']:.1f} s in all")
+        if "plan" in summary:
+            pl = summary["plan"]
+            print(f"planned for {pl['tolerance']:.2%} over {pl['frames']} frame(s): predicted error "
+                  f"{pl['predicted_error']:.2%}; {pl['reasons'].get('method', '')}")
     if args.command == "profiles":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")

@@ -36,7 +36,7 @@ from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import DirectionalLight, Light, surface_irradiance
-from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.mesh import Mesh, decimate
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.sampling import SurfaceSamples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
@@ -191,6 +191,12 @@ class ReferenceRenderer(Renderer):
         specular: add the boundary's GGX specular reflection with the same visibility (off by default so that
             images compare subsurface transport alone).
         roughness: GGX alpha of the specular term.
+        source_faces: when set and the mesh has more faces, the sample sources (their positions, normals,
+            irradiance and shadows) come from the mesh decimated to about this many faces
+            (:func:`~torchsss.geometry.decimate`), while the camera still sees the full mesh: every face holds at
+            least one sample, so a finely tessellated scan has far more samples than its spacing asks for
+            (a 268k-face scan: 268k samples where the spacing needs ~10k). The planner sets it to the
+            spacing's face count (:mod:`torchsss.plan`).
 
     Examples:
         >>> from torchsss.geometry import Camera, DirectionalLight, sphere
@@ -203,10 +209,17 @@ class ReferenceRenderer(Renderer):
 
     method = "reference"
     defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
-                    max_samples=2_000_000, specular=False, roughness=0.3)
+                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None)
 
     def _build(self) -> None:
         k = self.knobs
+        self.source_mesh = self.mesh
+        if k["source_faces"] is not None:
+            n = k["source_faces"]
+            if isinstance(n, bool) or not isinstance(n, int) or n < 4:
+                raise ValueError(f"source_faces: expected an int >= 4 or None, got {n!r}")
+            if n < self.mesh.num_faces:
+                self.source_mesh = decimate(self.mesh, n)
         self.fresnel = check_fresnel(k["fresnel"], ("exact", "schlick"))
         if k["shadows"] not in _SHADOWS:
             raise ValueError(f"shadows: expected one of {_SHADOWS}, got {k['shadows']!r}")
@@ -215,7 +228,7 @@ class ReferenceRenderer(Renderer):
         if not (math.isfinite(spacing) and spacing > 0):
             raise ValueError(f"spacing_mm: expected a finite value > 0, got {k['spacing_mm']!r}")
         k["spacing_mm"] = spacing
-        self.samples = surface_samples(self.mesh, spacing, max_samples=k["max_samples"])
+        self.samples = surface_samples(self.source_mesh, spacing, max_samples=k["max_samples"])
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh = self.knobs, self.mesh
@@ -224,7 +237,8 @@ class ReferenceRenderer(Renderer):
         eta = self.eta
         gbuf = camera_gbuffer(mesh, camera)
         t1 = time.perf_counter()
-        e = sample_irradiance(mesh, self.samples, lights, eta, shadows=k["shadows"], fresnel=self.fresnel)
+        e = sample_irradiance(self.source_mesh, self.samples, lights, eta, shadows=k["shadows"],
+                              fresnel=self.fresnel)
         stats["t_irradiance_s"] = time.perf_counter() - t1
         mask = gbuf.mask[0, 0]
         receivers = gbuf.position[0].permute(1, 2, 0)[mask]

@@ -1,0 +1,150 @@
+"""Verification of the planner on scenes it was not tuned on: tolerance met, time against the fastest.
+
+Does the planned render meet the tolerance, and how close is its time to the fastest configuration that does?
+
+For each scene (procedural shapes and the shared meshes, 5-80 mm, ketchup to skim milk, front-, side- and back-lit,
+128x128 and 256x256; none of them is a calibration scene of ``bench_trade.py``):
+
+1. the reference at its default knobs (the truth);
+2. a trade sweep (``torchsss.trade``, the configurations of :func:`sweep` below);
+3. for each tolerance (1%, 2%, 5%): ``torchsss.plan(scene, tolerance)`` and the planned render, its error against
+   the truth and its time (setup + one frame: ``frames=1`` plans for a single image).
+
+A (scene, tolerance) pair is a hit when the planned render's relative RMSE is within the tolerance; the time ratio
+is the planned render's setup + frame over that of the fastest configuration (sweep rows and planned renders) that
+meets the tolerance; the truth itself always meets it, so the ratio is defined. Writes
+``results/planner.{json,md}``. 1 thread (on the shared 2-core machine, two OpenMP processes slow each other 5-10x).
+
+Usage::
+
+    python benchmarks/bench_planner.py            # 8 scenes (about 40 minutes)
+    python benchmarks/bench_planner.py --quick    # 2 scenes at 48x48
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark
+from torchsss.plan import plan
+from torchsss.scene import Scene
+from torchsss.trade import ATLAS_FACES, _run, image_error
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+TOLERANCES = (0.01, 0.02, 0.05)
+LIGHTS = {"front": [0.3, 0.4, 1.0], "side": [1.0, 0.3, 0.1], "back": [-0.5, 0.4, -1.0]}
+
+
+def make_scene(name: str, mesh: str, size: float, material: str, light: str, res: int,
+               decimate: int | None = None) -> Scene:
+    """A scene with one point light at 2.5 sizes from the centre, the camera on +z at 2.2 sizes."""
+    d = 2.5 * size
+    v = LIGHTS[light]
+    n = sum(x * x for x in v) ** 0.5
+    s = {"name": name, "mesh": mesh, "size_mm": size, "material": material,
+         "lights": [{"type": "point", "position": [x / n * d for x in v], "intensity": [4.0 * d * d] * 3}],
+         "camera": {"eye": [0.0, 0.0, 2.2 * size], "target": [0.0, 0.0, 0.0], "fov_deg": 30.0, "width": res,
+                    "height": res}}
+    if decimate:
+        s["decimate"] = decimate
+    return Scene.from_dict(s)
+
+
+def scenes(quick: bool) -> list[Scene]:
+    if quick:
+        return [make_scene("sphere 10 mm skimmilk front", "sphere", 10, "skimmilk", "front", 48),
+                make_scene("torus 30 mm ketchup side", "torus", 30, "ketchup", "side", 48)]
+    out = [make_scene("sphere 10 mm skimmilk front", "sphere", 10, "skimmilk", "front", 128),
+           make_scene("spot 20 mm ketchup side", "spot", 20, "ketchup", "side", 128),
+           make_scene("torus 80 mm skin2 back", "torus", 80, "skin2", "back", 128),
+           make_scene("sphere 5 mm cream back", "sphere", 5, "cream", "back", 256),
+           make_scene("spot 60 mm chicken1 front", "spot", 60, "chicken1", "front", 256)]
+    if (SHARED / "teapot.obj").exists():
+        out += [make_scene("teapot 40 mm apple side", str(SHARED / "teapot.obj"), 40, "apple", "side", 128),
+                make_scene("bunny 30 mm marble back", str(SHARED / "stanford-bunny.obj"), 30, "marble", "back",
+                           128, decimate=30000),
+                make_scene("igea 10 mm skin1 front", str(SHARED / "igea.ply"), 10, "skin1", "front", 128,
+                           decimate=40000)]
+    return out
+
+
+def sweep(faces: int) -> list[tuple[str, dict]]:
+    """The verification sweep (a subset of ``trade.sweep_configs``: the costliest points are left out)."""
+    runs = [("reference", {"eps": e}) for e in (0.3, 0.1, 0.03)]
+    runs += [("splat", {"eps": e, "oversample": s}) for e in (0.03, 0.01, 0.003) for s in (1.0, 2.0)]
+    runs += [(m, {"samples": n}) for m in ("icdf", "hybrid") for n in (4096, 16384)]
+    runs += [("lensch", {"atlas_resolution": 256})]
+    return [(m, {**k, "decimate": ATLAS_FACES}) if m in ("icdf", "hybrid", "lensch") and faces > ATLAS_FACES
+            else (m, k) for m, k in runs]
+
+
+def main() -> None:
+    parser = benchmark_parser(__doc__.splitlines()[0], "planner", RESULTS_DIR)
+    args = parser.parse_args()
+    setup_benchmark(parser, args)
+    start = time.perf_counter()
+    records, rows_all = [], {}
+    for scene in scenes(args.quick):
+        t_scene = time.perf_counter()
+        truth, _ = _run(scene, "reference", {}, 1, torch.float32)
+        truth_s = truth.stats["setup_s"] + truth.stats["frame_median_s"]
+        faces = scene.load_mesh().num_faces
+        rows = [{"method": "reference", "knobs": {}, "time_s": truth_s, "rel_rmse": 0.0, "kind": "truth"}]
+        for method, knobs in sweep(faces):
+            out, _ = _run(scene, method, knobs, 1, torch.float32)
+            rows.append({"method": method, "knobs": knobs, "kind": "sweep",
+                         "time_s": out.stats["setup_s"] + out.stats["frame_median_s"], **image_error(out, truth)})
+            print(f"  {scene.name}: {method} {knobs}: {rows[-1]['time_s']:.2f} s, {rows[-1]['rel_rmse']:.2%}",
+                  flush=True)
+        planned = {}
+        for tol in TOLERANCES:
+            t0 = time.perf_counter()
+            p = plan(scene, tol)
+            plan_s = time.perf_counter() - t0
+            knobs = {**p.knobs, **({"decimate": p.decimate} if p.decimate else {})}
+            out, _ = _run(scene, p.method, knobs, 1, torch.float32)
+            row = {"method": p.method, "knobs": knobs, "kind": f"plan {tol}", "plan_s": plan_s,
+                   "time_s": out.stats["setup_s"] + out.stats["frame_median_s"], **image_error(out, truth),
+                   "predicted_error": p.predicted_error, "predicted_s": p.predicted_total_s}
+            rows.append(row)
+            planned[tol] = row
+        for tol, row in planned.items():
+            meeting = [r for r in rows if r["rel_rmse"] <= tol]
+            fastest = min(meeting, key=lambda r: r["time_s"])
+            records.append({"benchmark": "verification", "scene": scene.name, "resolution": scene.camera.width,
+                            "faces": faces, "tolerance": tol, "method": row["method"], "knobs": json.dumps(row["knobs"]),
+                            "rel_rmse": row["rel_rmse"], "predicted_error": row["predicted_error"],
+                            "hit": row["rel_rmse"] <= tol, "time_s": row["time_s"] + row["plan_s"],
+                            "predicted_s": row["predicted_s"], "fastest_meeting": f"{fastest['method']} "
+                            f"{json.dumps(fastest['knobs'])}", "fastest_s": fastest["time_s"],
+                            "time_ratio": (row["time_s"] + row["plan_s"]) / fastest["time_s"],
+                            "reference_s": truth_s})
+            print(f"{scene.name} tol {tol:.0%}: {row['method']} {row['knobs']} error {row['rel_rmse']:.2%} "
+                  f"(predicted {row['predicted_error']:.2%}), {records[-1]['time_s']:.2f} s, "
+                  f"ratio {records[-1]['time_ratio']:.2f} vs {records[-1]['fastest_meeting']}", flush=True)
+        rows_all[scene.name] = rows
+        print(f"{scene.name}: {time.perf_counter() - t_scene:.0f} s", flush=True)
+    hits = sum(r["hit"] for r in records)
+    ratio_ok = sum(r["time_ratio"] <= 1.5 for r in records)
+    summary = [{"benchmark": "summary", "pairs": len(records), "hits": hits, "hit_rate": hits / max(1, len(records)),
+                "time_ratio_le_1.5": ratio_ok,
+                "worst_ratio": max((r["time_ratio"] for r in records), default=float("nan")),
+                "worst_error_over_tolerance": max((r["rel_rmse"] / r["tolerance"] for r in records),
+                                                  default=float("nan"))}]
+    (Path(args.out_dir) / f"{args.name}_rows.json").write_text(json.dumps(rows_all, indent=1))
+    finish_benchmark(args.name, records + summary, args.out_dir, start=start,
+                     columns={"verification": ["scene", "resolution", "faces", "tolerance", "method", "knobs",
+                                               "rel_rmse", "predicted_error", "hit", "time_s", "predicted_s",
+                                               "fastest_meeting", "fastest_s", "time_ratio", "reference_s"],
+                              "summary": ["pairs", "hits", "hit_rate", "time_ratio_le_1.5", "worst_ratio",
+                                          "worst_error_over_tolerance"]})
+
+
+if __name__ == "__main__":
+    torch.set_grad_enabled(False)
+    main()

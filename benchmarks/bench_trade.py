@@ -1,0 +1,71 @@
+"""The measured trade on calibration scenes: ``torchsss.trade`` over several scenes, one JSON with every row.
+
+The planner's (``torchsss.plan``) error and cost constants are fitted to these rows (see ``torchsss/plan.py``);
+the planner is then verified on other scenes (``bench_planner.py``). Each scene: the reference (the truth) and
+every applicable method over its knob sweep, ``--frames`` frames per configuration (light orbit), 1 thread by
+default (on this shared 2-core machine two OpenMP threads of two processes slow each other down 5-10x).
+
+Usage::
+
+    python benchmarks/bench_trade.py                 # the calibration scenes at 96x96 (about 20 min)
+    python benchmarks/bench_trade.py --quick         # one scene at 48x48, the quick sweep
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark
+from torchsss.scene import Scene, default_scene_path, load_scene
+from torchsss.trade import trade, write_trade
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+def _scene(mesh: str, size: float, material: str, light: list[float], res: int, name: str) -> Scene:
+    d = 2.2 * size
+    return Scene.from_dict({
+        "name": name, "mesh": mesh, "size_mm": size, "material": material,
+        "lights": [{"type": "point", "position": [v * d for v in light], "intensity": [float(d * d * 4)] * 3}],
+        "camera": {"eye": [0.0, 0.0, d], "target": [0.0, 0.0, 0.0], "fov_deg": 30.0, "width": res, "height": res}})
+
+
+def calibration_scenes(res: int) -> list[Scene]:
+    """The scenes the planner's constants are fitted on (the default scene, a side-lit marble torus)."""
+    import dataclasses
+
+    s0 = load_scene(default_scene_path())
+    default = dataclasses.replace(s0, camera=dataclasses.replace(s0.camera, width=res, height=res))
+    return [default, _scene("torus", 30.0, "marble", [1.0, 0.3, 0.2], res, "torus 30 mm marble, side-lit")]
+
+
+def main() -> None:
+    parser = benchmark_parser(__doc__.splitlines()[0], "trade_calibration", RESULTS_DIR)
+    parser.add_argument("--resolution", type=int, default=96)
+    args = parser.parse_args()
+    setup_benchmark(parser, args)
+    start = time.perf_counter()
+    scenes = calibration_scenes(48 if args.quick else args.resolution)[: 1 if args.quick else None]
+    records = []
+    for scene in scenes:
+        result = trade(scene, quick=args.quick)
+        write_trade(result, Path(args.out_dir) / "trade" / scene.name.split()[0].rstrip(":"))
+        ref = result["reference"]
+        for row in result["rows"]:
+            records.append({"scene": scene.name, "resolution": scene.camera.width, "method": row["method"],
+                            "knobs": row["knobs"], "setup_s": row["setup_s"], "frame_s": row["frame_s"],
+                            "rel_rmse": row["rel_rmse"], "max_error": row["max_error"], "peak_mib": row["peak_mib"],
+                            "reference_setup_s": ref["setup_s"], "reference_frame_s": ref["frame_s"],
+                            "covered_pixels": ref["covered_pixels"], "stats_knobs": row["stats_knobs"]})
+        print(f"{scene.name}: {len(result['rows'])} runs, {result['seconds']:.0f} s", flush=True)
+    finish_benchmark(args.name, records, args.out_dir, start=start,
+                     columns=["scene", "resolution", "method", "knobs", "setup_s", "frame_s", "rel_rmse",
+                              "max_error", "peak_mib", "reference_frame_s"])
+
+
+if __name__ == "__main__":
+    torch.set_grad_enabled(False)
+    main()

@@ -1,0 +1,215 @@
+"""The planner (torchsss.plan): each "model only what a scene requires" rule on a scene built to trigger it, the
+frames trade-off, measured trades, and the rules' physics (shadows, source decimation) against full renders."""
+
+import json
+import math
+
+import pytest
+
+from torchsss.cli import main
+from torchsss.geometry import Camera, PointLight, sphere
+from torchsss.pipelines import build
+from torchsss.plan import RULES, Plan, SceneFacts, candidates, detail_faces, plan, predict, source_count
+from torchsss.scene import Scene, default_scene_path, load_scene
+
+
+def _scene(mesh="sphere", size=20.0, material="skin1", res=16, light=(0.0, 0.0, 1.0), decimate=None):
+    d = 2.5 * size
+    s = {"mesh": mesh, "size_mm": size, "material": material,
+         "lights": [{"type": "point", "position": [v * d for v in light], "intensity": 4 * d * d}],
+         "camera": {"eye": [0, 0, d], "target": [0, 0, 0], "fov_deg": 30.0, "width": res, "height": res}}
+    if decimate:
+        s["decimate"] = decimate
+    return Scene.from_dict(s)
+
+
+def test_facts_closed_form_sphere():
+    s = _scene(res=32)
+    f = SceneFacts.from_scene(s)
+    r = f.radius_mm
+    assert f.convex
+    assert f.area_mm2 == pytest.approx(4 * math.pi * r * r, rel=0.02)
+    assert f.thickness_mm == pytest.approx(4 * r / 3, rel=0.03)  # mean chord of a ball: 4V/S = 4r/3
+    # the Cauchy estimate of the covered pixels against the rasterised count
+    ref = build("reference", s.load_mesh(), "skin1", spacing_mm=4.0).render(s.lights, s.camera)
+    assert f.covered_px == pytest.approx(float(ref.mask.sum()), rel=0.25)
+    assert f.sources[0] >= f.faces and list(f.sources) == sorted(f.sources, reverse=True)
+    assert not SceneFacts.from_scene(_scene(mesh="torus")).convex
+
+
+def test_source_count_matches_sampler():
+    from torchsss.geometry.sampling import surface_samples
+    m = sphere(10.0, 3)
+    for h in (0.5, 2.0, 8.0):
+        assert source_count(m, h) == surface_samples(m, h).area.shape[0]
+
+
+def test_rule_shadows_convex_only():
+    conv = plan(_scene(), 0.05, methods=["reference"])
+    assert conv.knobs.get("shadows") == "none" and "shadows" in conv.reasons and "shadow rays" in conv.skipped
+    nonconv = plan(_scene(mesh="torus"), 0.05, methods=["reference"])
+    assert "shadows" not in nonconv.knobs and "shadows" in nonconv.modelled
+
+
+def test_rule_shadows_is_exact_on_convex_object():
+    """The rule's premise: on a convex object shadows 'none' renders the image of ray-traced shadows (up to the
+    few terminator samples whose smooth normal faces the light while a neighbouring facet blocks the ray)."""
+    m = sphere(10.0, 3)
+    lights = [PointLight((30.0, 10.0, 20.0), 5e3), PointLight((-20.0, 0.0, -30.0), 5e3)]
+    cam = Camera(eye=(0, 0, 50), target=(0, 0, 0), width=20, height=20)
+    a = build("reference", m, "marble", spacing_mm=1.5, shadows="none").render(lights, cam).radiance
+    b = build("reference", m, "marble", spacing_mm=1.5, shadows="raytrace").render(lights, cam).radiance
+    assert float((a - b).square().mean().sqrt() / b.square().mean().sqrt()) < 1e-3
+    assert float((a - b).abs().max()) < 1e-3 * float(b.max())
+
+
+def test_rule_sources_decimated():
+    s = _scene(res=16)
+    mesh = sphere(10.0, 6)  # 81920 faces, ~0.1 mm edges; skin1's spacing at eps 0.1 is ~1 mm
+    p = plan(s, 0.05, methods=["reference"], mesh=mesh)
+    assert p.knobs.get("source_faces") and p.knobs["source_faces"] < mesh.num_faces / 4
+    assert "sources" in p.reasons
+
+
+def test_source_faces_knob_against_full_sources():
+    """Sources from a mesh decimated to the spacing (the planner's rule) render the full mesh's image to < 1%."""
+    m = sphere(10.0, 6)  # 81920 faces, 0.1 mm edges: one sample per face, far finer than skin1's 0.6 mm spacing
+    lights = [PointLight((40.0, 20.0, 30.0), 1e4)]
+    cam = Camera(eye=(0, 0, 50), target=(0, 0, 0), width=12, height=12)
+    full = build("reference", m, "skin1").render(lights, cam)
+    facts = SceneFacts.from_scene(_scene(size=20 * math.sqrt(3)), m)  # the same sphere (r = 10 mm)
+    wanted, predicted = facts.source_faces[0], facts.sources_decimated[0]
+    dec = build("reference", m, "skin1", source_faces=wanted)
+    n = dec.samples.area.shape[0]
+    assert dec.source_mesh.num_faces <= 1.1 * wanted and n < full.stats["samples"] / 2
+    assert 0.7 < predicted / n < 1.4  # the planner's estimate of the decimated source count
+    img = dec.render(lights, cam)
+    mk = full.mask.expand_as(full.radiance)
+    err = float((img.radiance - full.radiance)[mk].square().mean().sqrt() / full.radiance[mk].square().mean().sqrt())
+    assert err < 0.01
+    with pytest.raises(ValueError, match="source_faces"):
+        build("reference", m, "skin1", source_faces=2.5)
+
+
+def test_rule_decimate_atlas_methods():
+    s = _scene(res=16)
+    mesh = sphere(10.0, 6)
+    f = SceneFacts.from_scene(s, mesh)
+    target = detail_faces(f)
+    assert target is not None and 2000 <= target <= f.faces // 2
+    p = plan(s, 0.2, methods=["icdf"], mesh=mesh)
+    assert p.method == "icdf" and p.decimate == target and "decimate" in p.reasons
+    assert any("mesh detail" in x for x in p.skipped)
+    # a coarse mesh is kept
+    assert detail_faces(SceneFacts.from_scene(s, sphere(10.0, 2))) is None
+
+
+def test_rule_samples_from_tolerance():
+    s = _scene(res=16)
+    n = {t: plan(s, t, methods=["icdf"]).knobs["samples"] for t in (0.2, 0.1, 0.05)}
+    assert n[0.2] < n[0.1] < n[0.05]
+    # error ~ 1/sqrt(N): halving the tolerance asks about 4x the samples (powers of two)
+    assert 2 <= n[0.05] / n[0.1] <= 8
+    p = plan(s, 0.1, methods=["icdf"])
+    assert p.predicted_error <= 0.1 and "samples" in p.reasons
+
+
+def test_rule_splat_budget_tighter_for_lower_tolerance():
+    s = _scene(res=32)
+    loose, tight = plan(s, 0.2, methods=["splat"]), plan(s, 0.04, methods=["splat"])
+    assert loose.method == tight.method == "splat"
+    grid = {id(p): p.knobs["oversample"] / p.knobs["eps"] for p in (loose, tight)}
+    assert grid[id(tight)] >= grid[id(loose)] and loose.predicted_frame_s <= tight.predicted_frame_s
+    assert "splat_budget" in tight.reasons
+
+
+def test_rule_blend_reported():
+    s = _scene(res=16)
+    coarse = [c for c in candidates(s, SceneFacts.from_scene(s, sphere(10.0, 1)), 0.05, ["lensch"])]
+    fine = [c for c in candidates(s, SceneFacts.from_scene(s, sphere(10.0, 4)), 0.05, ["lensch"])]
+    assert all("skipped" in c["rules"]["blend"] for c in coarse)
+    assert any("on" in c["rules"]["blend"] for c in fine)
+
+
+def test_rule_reference_when_cheapest():
+    p = plan(_scene(res=8), 0.02)
+    assert p.method == "reference" and "reference" in p.reasons
+
+
+def test_frames_amortise_setup():
+    s = load_scene(default_scene_path())
+    one, many = plan(s, 0.05, frames=1), plan(s, 0.05, frames=10_000)
+    assert many.predicted_frame_s <= one.predicted_frame_s
+    assert many.predicted_total_s <= one.predicted_setup_s + 10_000 * one.predicted_frame_s
+    for p in (one, many):  # the chosen candidate is the cheapest qualifying one
+        ok = [c for c in p.candidates if c["error"] * 1.25 <= 0.05]
+        assert min(c["total_s"] for c in ok) == pytest.approx(p.predicted_total_s)
+
+
+def test_measured_trade_overrides_predictions():
+    s = load_scene(default_scene_path())
+    p = plan(s, 0.05)
+    assert p.method != "reference"
+    knobs = dict(p.knobs)
+    if p.decimate:
+        knobs["decimate"] = p.decimate
+    trade = {"rows": [{"method": p.method, "knobs": knobs, "rel_rmse": 0.5, "setup_s": 0.1, "frame_s": 0.1}]}
+    q = plan(s, 0.05, trade=trade)
+    assert (q.method, q.knobs) != (p.method, p.knobs)
+    measured = [c for c in q.candidates if c["source"] == "measured"]
+    assert len(measured) == 1 and measured[0]["error"] == 0.5
+
+
+def test_predict_monotone_in_knobs():
+    s = _scene(res=32)
+    f = SceneFacts.from_scene(s)
+    e = [predict("icdf", {"samples": n}, f, s.material)["error"] for n in (1024, 4096, 16384)]
+    assert e[0] > e[1] > e[2]
+    t = [predict("icdf", {"samples": n}, f, s.material)["frame_s"] for n in (1024, 4096, 16384)]
+    assert t[0] < t[1] < t[2]
+    with pytest.raises(ValueError, match="method"):
+        predict("magic", {}, f, s.material)
+
+
+def test_plan_bad_input():
+    s = _scene()
+    for bad in (0.0, 1.0, -0.1, True, "0.1"):
+        with pytest.raises(ValueError, match="tolerance"):
+            plan(s, bad)
+    with pytest.raises(ValueError, match="frames"):
+        plan(s, 0.02, frames=0)
+    glass = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "skin1",
+                             "lights": [{"type": "point", "position": [0, 0, 100], "intensity": 1e4}],
+                             "camera": {"eye": [0, 0, 80], "target": [0, 0, 0], "width": 8, "height": 8},
+                             "caustics": {"ior": 1.5}})
+    with pytest.raises(ValueError, match="caustics"):
+        plan(glass, 0.02)
+
+
+def test_plan_json_and_str():
+    p = plan(_scene(), 0.05)
+    d = json.loads(json.dumps(p.to_json()))
+    assert d["method"] == p.method and d["predicted_total_s"] == pytest.approx(p.predicted_total_s)
+    assert isinstance(p, Plan) and p.method in str(p) and "predicted error" in str(p)
+    assert set(RULES) >= {"decimate", "sources", "shadows", "samples", "splat_budget", "blend", "reference"}
+
+
+def test_cli_plan_and_auto_render(tmp_path, capsys):
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({"mesh": "sphere", "size_mm": 20.0, "material": "skin1",
+                                "lights": [{"type": "point", "position": [0, 0, 50], "intensity": 1e4}],
+                                "camera": {"eye": [0, 0, 50], "target": [0, 0, 0], "width": 12, "height": 12}}))
+    assert main(["plan", str(path), "--tolerance", "0.05", "--json", str(tmp_path / "p.json")]) == 0
+    assert "plan:" in capsys.readouterr().out and json.loads((tmp_path / "p.json").read_text())["candidates"]
+    out = tmp_path / "r.png"
+    assert main(["render", str(path), "--tolerance", "0.05", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads(out.with_suffix(".json").read_text())
+    assert summary["plan"]["tolerance"] == 0.05 and summary["method"] == summary["plan"]["method"]
+    # an explicit knob restricts the planner to the methods that take it
+    assert main(["render", str(path), "--spacing", "3", "--out", str(tmp_path / "q.exr"), "--no-progress"]) == 0
+    q = json.loads((tmp_path / "q.json").read_text())
+    assert q["method"] == "reference" and q["knobs"]["spacing_mm"] == 3.0
+    with pytest.raises(SystemExit):
+        main(["render", str(path), "--method", "reference", "--samples", "64", "--out", str(tmp_path / "z.exr")])
+    with pytest.raises(SystemExit):
+        main(["render", str(path), "--method", "splat", "--tolerance", "0.05", "--out", str(tmp_path / "z.exr")])

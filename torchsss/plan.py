@@ -1,0 +1,603 @@
+"""The planner: the method, knobs and modelling a scene needs to meet an error tolerance at least cost.
+
+``plan(scene, tolerance=0.02, frames=1)`` looks at the scene in closed form (:class:`SceneFacts`: each channel's
+scattering length :math:`1/\\sigma_{tr}` and :math:`r_{max}(\\epsilon)` against the object's size, the camera's
+pixel footprint on the surface, the mesh's faces and edges, whether the object is convex, how many pixels it
+covers), predicts for every candidate configuration of every applicable method its error against the reference
+and its setup and frame time (:func:`predict`), and returns the cheapest candidate whose predicted error meets the
+tolerance (setup + ``frames`` x frame time: a method with costly setup and cheap frames wins only when many
+frames follow) as a :class:`Plan`, with a one-line reason for every choice.
+
+The predictions are closed forms with constants fitted to the measured trade (:mod:`torchsss.trade`, the rows of
+``benchmarks/results/trade_calibration.json``, measured on scenes other than the planner's verification scenes;
+``benchmarks/bench_planner.py`` verifies it):
+
+* reference: the sources' lattice error :func:`~torchsss.physics.splat_alias_error` at their effective spacing
+  :math:`\\sqrt{A / n}` (every face holds at least one sample, so a fine mesh samples finer than asked); its
+  time is the pair count (covered pixels x sources).
+* splat: a floor plus the alias error of the light-view grid's texel and the truncation tolerance; time ~ splats
+  x footprint pixels.
+* icdf / hybrid: Monte Carlo, :math:`a / \\sqrt{N}` (hybrid: plus its split's floor); time ~ pixels x N.
+* lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput, blending) dominates.
+
+"Model only what a scene requires" (:data:`RULES`, each reported in ``Plan.reasons`` when it applies):
+
+* ``decimate``: the atlas methods get the mesh decimated to the detail the pixel footprint and the shortest
+  scattering length can show (a 268k-face scan does not need 268k faces for an atlas).
+* ``sources``: the reference's sources come from the mesh decimated to its sample spacing (``source_faces``).
+* ``shadows``: no shadow rays when nothing can occlude the light (a convex object: n.l > 0 is visibility).
+* ``samples``: the icdf/hybrid sample count N from the tolerance (error ~ 1/sqrt(N)).
+* ``splat_budget``: the splat tolerance and grid oversampling from the tolerance (Shah eq. 6.16-6.18).
+* ``blend``: Lensch's blending only where the planned kernel reaches the neighbouring vertices
+  (:func:`~torchsss.geometry.lensch.plan_lensch`).
+* ``reference``: the reference itself when it is the cheapest way to the tolerance (tiny images, tiny meshes).
+
+Lengths are millimetres, times seconds (of the calibration machine, one thread).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import torch
+
+from torchsss.geometry.lensch import ATLAS_UTILIZATION, BLEND_MIN_REACH
+from torchsss.geometry.mesh import Mesh
+from torchsss.modules.material import material_module
+from torchsss.physics.budget import splat_alias_error
+from torchsss.scene import Scene
+from torchsss.trade import ATLAS_METHODS, applicable_methods
+
+__all__ = ["MODEL", "RULES", "Plan", "SceneFacts", "candidates", "plan", "predict"]
+
+#: The rules the planner applies (name -> what it skips or chooses).
+RULES = {
+    "decimate": "atlas methods: decimate the mesh to the detail the pixel footprint and the scattering length show",
+    "sources": "reference: sample sources from the mesh decimated to the sample spacing",
+    "shadows": "reference: no shadow rays when nothing occludes the light (convex object)",
+    "samples": "icdf/hybrid: N from the tolerance (error ~ 1/sqrt(N))",
+    "splat_budget": "splat: the budget's tolerance and the grid from the tolerance",
+    "blend": "lensch: blending only where the kernel reaches the neighbouring vertices",
+    "reference": "the reference itself when it is the cheapest way to the tolerance",
+}
+
+#: Constants of the predictions: fitted to ``benchmarks/results/trade_calibration.json`` (1 thread, this
+#: 2-core machine; see :func:`predict` for the forms). Times in seconds.
+MODEL: dict[str, float] = {
+    # reference: frame = t_pair * pairs + t_src * sources * lights + t_px * pixels; setup = s0 + s_src * sources;
+    # error = err_h * |h - h0| / (1/sigma_tr)_min + err_alias * hypot(alias(h), alias(h0))
+    "ref_t_pair": 3.0e-7, "ref_t_src": 2.0e-5, "ref_t_px": 2.0e-5, "ref_s0": 0.1, "ref_s_src": 1.0e-5,
+    "ref_err_h": 0.05, "ref_err_alias": 1.0, "ref_err_eps": 0.04,
+    # splat: frame = t_splat * splats * footprint_px * lights + t_texel * grid^2 * lights + f0;
+    # error = hypot(floor, trunc * unlit^2.2 * eps, alias / oversample^2)
+    "splat_t": 1.0e-7, "splat_t_texel": 2.0e-5, "splat_f0": 0.05, "splat_s0": 0.2,
+    "splat_floor": 0.0105, "splat_trunc": 4.0, "splat_alias": 0.06,
+    # icdf/hybrid: frame = t_pair * pixels * N + f0; setup = s0 + s_face * faces + s_texel * res^2;
+    # error = hypot(floor, a * unlit^1.4 * (4096 / N)^p)
+    "icdf_t_pair": 1.9e-7, "icdf_f0": 0.4, "icdf_s0": 0.3, "icdf_s_face": 8.0e-5, "icdf_s_texel": 1.5e-6,
+    "icdf_a": 0.1, "icdf_p": 0.7, "icdf_floor": 0.005, "hybrid_t_pair": 1.8e-7, "hybrid_f0": 1.0,
+    "hybrid_s0": 0.8, "hybrid_a": 0.04, "hybrid_p": 0.6, "hybrid_floor": 0.03,
+    # lensch: frame = t_texel * res^2 + f0; setup = s0 + s_face * faces + s_kernel * res^2 * k^2 (blending);
+    # error = hypot(floor, c * (texel / (1/sigma_tr)_min)^3); without blending: no_blend
+    "lensch_t_texel": 6.0e-6, "lensch_f0": 0.6, "lensch_s0": 2.0, "lensch_s_face": 5.0e-4,
+    "lensch_s_kernel": 4.8e-6, "lensch_floor": 0.055, "lensch_texel": 0.34, "lensch_no_blend": 0.15,
+    # decimation (quadric edge collapse): seconds per input face
+    "decimate_s_face": 4.0e-6,
+}
+
+#: Safety factor: a candidate qualifies when its predicted error times this is within the tolerance.
+MARGIN = 1.25
+#: The truth's tolerance (the reference's default ``eps``).
+TRUTH_EPS = 0.01
+#: The reference tolerances the planner considers (the first is the truth).
+REFERENCE_EPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
+
+
+@dataclass(frozen=True)
+class SceneFacts:
+    """What the planner knows about a scene in closed form (mm, mm^-1; pixels).
+
+    Attributes:
+        faces: the mesh's face count.
+        size_mm: the bounding box's diagonal.
+        area_mm2: surface area.
+        radius_mm: bounding-sphere radius (max vertex distance from the box centre).
+        median_edge_mm: median edge length.
+        convex: the mesh's volume is at least 98% of its convex hull's (nothing occludes the light).
+        thickness_mm: mean chord length :math:`4V/S` (how thick the object is for light passing through).
+        pixel_mm: the camera's pixel footprint at the object's nearest distance.
+        covered_px: pixels the object covers (Cauchy: the hull's mean projected area is a quarter of its area;
+            at the centre's distance).
+        pixels: the image's pixel count.
+        lights: number of lights.
+        unlit: how much of the object the camera sees lies away from the light, in [0, 1]: per light
+            :math:`(1 - \\cos\theta) / 2` with :math:`\theta` between the directions from the centre to the eye and
+            to the light, weighted by the light's irradiance at the centre (0 front-lit, 0.5 side-lit, 1 back-lit).
+            Back-lit views show light that crossed the object: the far field, which truncation and sampling miss.
+        ell_mm: per channel :math:`1/\\sigma_{tr}`.
+        r_max_mm: per channel :math:`r_{max}` at :data:`TRUTH_EPS`.
+        spacing_mm: the truth reference's sample spacing.
+        sources: the reference's source count on the full mesh at each of :data:`REFERENCE_EPS`.
+        source_faces: per :data:`REFERENCE_EPS`, the face count the sources need (:func:`source_faces`).
+        sources_decimated: per :data:`REFERENCE_EPS`, the source count on the mesh decimated to ``source_faces``
+            (about 1.2 per face: a decimated 81920-face sphere at 8 A / h^2 faces gave 1.15).
+    """
+
+    faces: int
+    size_mm: float
+    area_mm2: float
+    radius_mm: float
+    median_edge_mm: float
+    convex: bool
+    thickness_mm: float
+    pixel_mm: float
+    covered_px: float
+    pixels: int
+    lights: int
+    unlit: float
+    ell_mm: tuple[float, float, float]
+    r_max_mm: tuple[float, float, float]
+    spacing_mm: float
+    sources: tuple[int, ...]
+    source_faces: tuple[int, ...]
+    sources_decimated: tuple[int, ...]
+
+    @classmethod
+    def from_scene(cls, scene: Scene, mesh: Mesh | None = None) -> SceneFacts:
+        """Compute the facts of a single-object scene (loads the mesh unless given)."""
+        mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
+        prof = _Profile.of(scene.material)
+        mat = prof.module
+        v = mesh.vertices.detach()
+        lo, hi = v.amin(0), v.amax(0)
+        centre = 0.5 * (lo + hi)
+        radius = float((v - centre).norm(dim=1).max())
+        f = mesh.faces
+        edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+        median_edge = float((v[edges[:, 0]] - v[edges[:, 1]]).norm(dim=1).median())
+        tm = mesh.to_trimesh()
+        hull = tm.convex_hull
+        volume = abs(float(tm.volume)) if tm.is_watertight else 0.0
+        convex = bool(tm.is_watertight and hull.volume > 0 and volume >= 0.98 * float(hull.volume))
+        area = float(mesh.area)
+        thickness = 4.0 * volume / area if volume > 0 else 0.0
+        cam = scene.camera
+        eye = torch.tensor(cam.eye, dtype=torch.float64)
+        dist = float((eye - centre).norm())
+        per_mm = 2.0 * math.tan(math.radians(cam.fov_deg) / 2.0) / cam.height  # pixel size over distance
+        pixel = max(dist - radius, 1e-3) * per_mm  # at the nearest surface: the finest detail a pixel shows
+        covered = min(float(hull.area) / 4.0 / (dist * per_mm) ** 2, float(cam.width * cam.height))
+        unlit = _unlit(scene, centre, eye)
+        sa, ss = mat.sigma_a.detach().double(), mat.sigma_s_prime.detach().double()
+        ell = 1.0 / torch.sqrt(3.0 * sa * (sa + ss))
+        spacing = reference_spacing(prof, mesh.size_mm, TRUTH_EPS)
+        hs = [reference_spacing(prof, mesh.size_mm, e) for e in REFERENCE_EPS]
+        sources = tuple(source_count(mesh, h) for h in hs)
+        wanted = tuple(min(mesh.num_faces, source_faces(area, h)) for h in hs)
+        decimated = tuple(min(n, int(1.2 * w)) for n, w in zip(sources, wanted))
+        return cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
+                   median_edge_mm=median_edge, convex=convex, thickness_mm=thickness, pixel_mm=pixel, covered_px=covered,
+                   pixels=cam.width * cam.height, lights=len(scene.lights), unlit=unlit,
+                   ell_mm=tuple(float(x) for x in ell), r_max_mm=prof.r_max_channels(TRUTH_EPS),
+                   spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated)
+
+
+def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
+    """:attr:`SceneFacts.unlit` (environment lights count as front light)."""
+    view = (eye - centre) / (eye - centre).norm()
+    num = den = 0.0
+    for light in scene.lights:
+        if hasattr(light, "position"):
+            d = torch.tensor(light.position, dtype=torch.float64) - centre
+            dist2 = float(d.square().sum())
+            w = float(sum(light.intensity)) / max(dist2, 1e-12)
+            d = d / math.sqrt(max(dist2, 1e-24))
+        elif hasattr(light, "direction"):
+            d = -torch.tensor(light.direction, dtype=torch.float64)
+            d = d / d.norm()
+            w = float(sum(light.irradiance))
+        else:
+            continue
+        num += w * (1.0 - float(d @ view)) / 2.0
+        den += w
+    return num / den if den > 0 else 0.0
+
+
+def source_faces(area_mm2: float, spacing_mm: float) -> int:
+    """Faces that carry the reference's sources at ``spacing_mm``: :math:`8A/h^2`, at least 500.
+
+    The sampler puts :math:`\\lceil l / h \\rceil^2` samples on a face with longest edge :math:`l`; a decimated
+    mesh's faces are irregular, so fewer, larger faces do not mean fewer samples: on a decimated sphere the count
+    is least (1.15 samples per face) at :math:`8A/h^2` faces (edges about :math:`0.54 h`) and 10% and 20% higher
+    at 6 and 4 :math:`A/h^2`.
+    """
+    return max(500, int(8.0 * area_mm2 / (spacing_mm * spacing_mm)))
+
+
+def reference_spacing(profile: _Profile, size_mm: float, eps: float) -> float:
+    """The reference's default sample spacing at ``eps`` (:func:`~torchsss.pipelines.reference.default_spacing`)."""
+    return max(profile.spacing(eps), float(size_mm) / 4000.0)
+
+
+def source_count(mesh: Mesh, spacing_mm: float) -> int:
+    """The reference's sample count at ``spacing_mm`` (:func:`~torchsss.geometry.sampling.surface_samples`)."""
+    tri = mesh.triangles().detach().double()
+    longest = torch.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], 1).norm(dim=-1)
+    n = torch.ceil(longest.amax(1) / spacing_mm).clamp_min(1.0)
+    return int((n * n).sum())
+
+
+@dataclass
+class Plan:
+    """A planned render: what to run and why.
+
+    Attributes:
+        method: the method to build.
+        knobs: its knobs (pass to :func:`torchsss.pipelines.build` / ``render_scene``).
+        decimate: the mesh's decimation target (faces), or None for the full mesh.
+        modelled: the terms the plan models.
+        skipped: the terms it skips (each with the reason in ``reasons``).
+        predicted_error: predicted relative RMSE against the reference.
+        predicted_setup_s: predicted setup time.
+        predicted_frame_s: predicted time of one frame.
+        tolerance: the asked tolerance.
+        frames: the frames the cost was planned for.
+        reasons: one line per choice (method, each knob, each rule that applied).
+        facts: the :class:`SceneFacts` as a dict.
+        candidates: every candidate considered, with its predictions (cheapest first).
+    """
+
+    method: str
+    knobs: dict
+    decimate: int | None
+    modelled: list[str]
+    skipped: list[str]
+    predicted_error: float
+    predicted_setup_s: float
+    predicted_frame_s: float
+    tolerance: float
+    frames: int
+    reasons: dict[str, str] = field(default_factory=dict)
+    facts: dict = field(default_factory=dict)
+    candidates: list[dict] = field(default_factory=list)
+
+    @property
+    def predicted_total_s(self) -> float:
+        """Setup plus ``frames`` frames."""
+        return self.predicted_setup_s + self.frames * self.predicted_frame_s
+
+    def scene(self, scene: Scene) -> Scene:
+        """``scene`` with the plan's decimation applied."""
+        return dataclasses.replace(scene, decimate=self.decimate) if self.decimate else scene
+
+    def to_json(self) -> dict:
+        """The plan as JSON values."""
+        d = dataclasses.asdict(self)
+        d["predicted_total_s"] = self.predicted_total_s
+        return d
+
+    def __str__(self) -> str:
+        lines = [f"plan: {self.method} {json.dumps(self.knobs)}"
+                 + (f", mesh decimated to {self.decimate} faces" if self.decimate else ""),
+                 f"  predicted error {self.predicted_error:.2%} (tolerance {self.tolerance:.2%}), setup "
+                 f"{self.predicted_setup_s:.2f} s, frame {self.predicted_frame_s:.2f} s, {self.frames} frame(s): "
+                 f"{self.predicted_total_s:.2f} s",
+                 f"  modelled: {', '.join(self.modelled)}",
+                 f"  skipped: {', '.join(self.skipped) or 'nothing'}"]
+        lines += [f"  {k}: {v}" for k, v in self.reasons.items()]
+        return "\n".join(lines)
+
+
+class _Profile:
+    """A material's spacing, r_max and alias error, memoised (each bisection costs 0.1-0.4 s)."""
+
+    _cache: ClassVar[dict[tuple, _Profile]] = {}
+
+    def __init__(self, material) -> None:
+        self.module = material_module(material, dtype=torch.float64)
+        self.mt = tuple(t.detach().double() for t in (self.module.sigma_a, self.module.sigma_s_prime,
+                                                      self.module.eta))
+        self._memo: dict[tuple, float] = {}
+
+    @classmethod
+    def of(cls, material) -> _Profile:
+        mod = material_module(material, dtype=torch.float64)
+        key = (type(mod).__name__, *(tuple(t.detach().double().reshape(-1).tolist())
+                                     for t in (mod.sigma_a, mod.sigma_s_prime, mod.eta)))
+        if key not in cls._cache:
+            cls._cache[key] = cls(material)
+        return cls._cache[key]
+
+    def _get(self, key: tuple, fn) -> float:
+        if key not in self._memo:
+            self._memo[key] = float(fn())
+        return self._memo[key]
+
+    def spacing(self, eps: float) -> float:
+        return self._get(("spacing", eps), lambda: self.module.spacing(eps).min())
+
+    def r_max(self, eps: float) -> float:
+        return self._get(("r_max", eps), lambda: self.module.r_max(eps).max())
+
+    def r_max_channels(self, eps: float) -> tuple[float, ...]:
+        return tuple(float(x) for x in self.module.r_max(eps))
+
+    def alias(self, h: float) -> float:
+        """The RMS over channels of the lattice alias error at spacing ``h`` (mm)."""
+        h = float(f"{h:.4g}")
+        return self._get(("alias", h), lambda: splat_alias_error(torch.tensor(h, dtype=torch.float64),
+                                                                  *self.mt).square().mean().sqrt())
+
+
+def detail_faces(facts: SceneFacts) -> int | None:
+    """The face count that shows the detail the image and the material can show, or None (keep the mesh).
+
+    Target edge: the larger of the pixel footprint and half the shortest scattering length; faces of an
+    equilateral tessellation of the area at that edge, at least 2000. None when that would not halve the mesh.
+    """
+    edge = max(facts.pixel_mm, 0.5 * min(facts.ell_mm))
+    target = max(2000, int(facts.area_mm2 / (math.sqrt(3.0) / 4.0 * edge * edge)))
+    return target if target * 2 <= facts.faces else None
+
+
+def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: int | None = None,
+            model: dict | None = None) -> dict[str, float]:
+    """Predicted ``error``, ``setup_s`` and ``frame_s`` of ``method`` with ``knobs`` on a scene (see the module).
+
+    ``material`` is a :class:`~torchsss.physics.Material` (its tensors feed the alias error).
+    """
+    m = {**MODEL, **(model or {})}
+    prof = _Profile.of(material)
+    faces = decimate or facts.faces
+    dec_s = m["decimate_s_face"] * facts.faces if decimate else 0.0
+    px, lights = facts.covered_px, facts.lights
+    if method == "reference":
+        eps = float(knobs.get("eps", TRUTH_EPS))
+        n0 = facts.sources[0]
+        n = knobs.get("_sources") or (facts.sources[REFERENCE_EPS.index(eps)] if eps in REFERENCE_EPS else n0)
+        h_eff = math.sqrt(facts.area_mm2 / n)
+        h0 = math.sqrt(facts.area_mm2 / n0)
+        err = 0.0 if (eps == TRUTH_EPS and n == n0) else \
+            m["ref_err_h"] * abs(h_eff - h0) / min(facts.ell_mm) + m["ref_err_alias"] * math.hypot(
+                prof.alias(h_eff), prof.alias(h0)) + m["ref_err_eps"] * (eps - TRUTH_EPS)
+        shadow = 0.2 if knobs.get("shadows") == "none" else 1.0
+        frame = m["ref_t_pair"] * px * n + shadow * m["ref_t_src"] * n * lights + m["ref_t_px"] * facts.pixels
+        setup = m["ref_s0"] + m["ref_s_src"] * n + (m["decimate_s_face"] * facts.faces if knobs.get("source_faces")
+                                                    else 0.0)
+        return {"error": err, "setup_s": setup, "frame_s": frame}
+    if method == "splat":
+        eps, over = float(knobs.get("eps", 0.01)), float(knobs.get("oversample", 2.0))
+        h = prof.spacing(eps)
+        grid = min(512, max(2, math.ceil(over * 2.0 * facts.radius_mm / h)))
+        texel = 2.0 * facts.radius_mm / grid
+        trunc = m["splat_trunc"] * facts.unlit ** 2.2 * eps
+        err = math.sqrt(m["splat_floor"] ** 2 + (m["splat_alias"] / over ** 2) ** 2 + trunc ** 2)
+        r = prof.r_max(eps)
+        footprint = min(px, math.pi * (r / facts.pixel_mm) ** 2)
+        splats = 0.5 * grid * grid
+        frame = m["splat_t"] * splats * footprint * lights + m["splat_t_texel"] * grid * grid * lights + m["splat_f0"]
+        return {"error": err, "setup_s": m["splat_s0"] + dec_s, "frame_s": frame}
+    if method in ("icdf", "hybrid"):
+        n = int(knobs.get("samples", 4096))
+        res = int(knobs.get("atlas_resolution", 512))
+        setup = m["icdf_s0"] + m["icdf_s_face"] * faces + m["icdf_s_texel"] * res * res + dec_s
+        if method == "icdf":
+            err = math.hypot(m["icdf_floor"], m["icdf_a"] * facts.unlit ** 1.4 * (4096.0 / n) ** m["icdf_p"])
+            frame = m["icdf_t_pair"] * px * n + m["icdf_f0"]
+        else:
+            err = math.hypot(m["hybrid_floor"], m["hybrid_a"] * facts.unlit ** 1.4 * (4096.0 / n) ** m["hybrid_p"])
+            frame = m["hybrid_t_pair"] * px * n + m["hybrid_f0"]
+            setup += m["hybrid_s0"]
+        return {"error": err, "setup_s": setup, "frame_s": frame}
+    if method == "lensch":
+        res = int(knobs.get("atlas_resolution", 512))
+        texel = math.sqrt(facts.area_mm2 / (ATLAS_UTILIZATION * res * res))
+        err = math.hypot(m["lensch_floor"], m["lensch_texel"] * (texel / min(facts.ell_mm)) ** 3)
+        edge = facts.median_edge_mm * math.sqrt(facts.faces / faces)
+        if 5 * texel / edge < BLEND_MIN_REACH:  # no blending (plan_lensch): the near field is missed
+            err = max(err, m["lensch_no_blend"])
+        k = min(max(2 * round(0.7 * edge / texel) + 1, 5), 11)  # plan_kernel_size
+        setup = m["lensch_s0"] + m["lensch_s_face"] * faces + m["lensch_s_kernel"] * res * res * k * k + dec_s
+        return {"error": err, "setup_s": setup, "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
+    raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
+
+
+def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
+               methods: Sequence[str] | None = None) -> list[dict]:
+    """Every configuration the planner considers: ``{"method", "knobs", "decimate", "rules"}`` dicts.
+
+    The knobs follow the rules (:data:`RULES`): the icdf/hybrid N from the tolerance, the reference's source
+    decimation and shadows, the atlas methods' mesh decimation.
+    """
+    allowed = applicable_methods(scene)
+    methods = [m for m in (methods or allowed) if m in allowed]
+    dec = detail_faces(facts)
+    out: list[dict] = []
+    prof = _Profile.of(scene.material)
+    for method in methods:
+        rules: dict[str, str] = {}
+        decimate = dec if method in ATLAS_METHODS else None
+        if decimate:
+            rules["decimate"] = (f"{facts.faces} faces (median edge {facts.median_edge_mm:.3g} mm) -> {decimate}: "
+                                 f"pixel {facts.pixel_mm:.3g} mm, shortest 1/sigma_tr {min(facts.ell_mm):.3g} mm")
+        if method == "reference":
+            for eps, n, wanted, n_dec in zip(REFERENCE_EPS, facts.sources, facts.source_faces,
+                                             facts.sources_decimated):
+                knobs: dict = {"eps": eps}
+                r = dict(rules)
+                h = reference_spacing(prof, facts.size_mm, eps)
+                if wanted * 2 <= facts.faces and n_dec * 1.5 <= n:
+                    knobs["source_faces"] = wanted
+                    n = n_dec
+                    r["sources"] = (f"sources from {wanted} faces, not {facts.faces}: the spacing {h:.3g} mm needs "
+                                    f"about {n} samples")
+                if facts.convex and facts.lights > 0:
+                    knobs["shadows"] = "none"
+                    r["shadows"] = "convex object: a sample faces the light exactly when the light sees it"
+                out.append({"method": method, "knobs": knobs, "decimate": None, "rules": r, "_sources": n})
+        elif method == "splat":
+            for eps in (0.003, 0.01, 0.03, 0.1):
+                for over in (1.0, 2.0, 4.0):
+                    r = dict(rules)
+                    r["splat_budget"] = f"eps {eps} (r_max {prof.r_max(eps):.3g} mm), oversample {over}"
+                    out.append({"method": method, "knobs": {"eps": eps, "oversample": over}, "decimate": None,
+                                "rules": r})
+        elif method in ("icdf", "hybrid"):
+            a = MODEL[f"{method}_a"] * facts.unlit ** 1.4
+            floor, power = MODEL[f"{method}_floor"], MODEL[f"{method}_p"]
+            target = tolerance / MARGIN
+            if target <= floor:
+                continue
+            need = 4096.0 * (a / math.sqrt(target * target - floor * floor)) ** (1.0 / power) if a > 0 else 0.0
+            n = int(2 ** math.ceil(math.log2(max(256.0, need))))
+            if n > 1 << 18:
+                continue
+            r = dict(rules)
+            r["samples"] = (f"N = {n}: error ~ hypot({floor:.3g}, {a:.3g} (4096 / N)^{power}) meets "
+                            f"{tolerance:.2%} with margin {MARGIN}")
+            out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
+        elif method == "lensch":
+            for res in (256, 512):
+                r = dict(rules)
+                edge = facts.median_edge_mm * math.sqrt(facts.faces / decimate) if decimate else facts.median_edge_mm
+                texel = math.sqrt(facts.area_mm2 / (ATLAS_UTILIZATION * res * res))
+                reach = 5 * texel / edge
+                r["blend"] = (f"blending on: an 11 x 11 kernel reaches {reach:.2f} median edges"
+                              if reach >= BLEND_MIN_REACH else
+                              f"blending skipped: even an 11 x 11 kernel reaches only {reach:.2f} median edges "
+                              f"(< {BLEND_MIN_REACH})")
+                out.append({"method": method, "knobs": {"atlas_resolution": res}, "decimate": decimate, "rules": r})
+    return out
+
+
+def plan(scene: Scene, tolerance: float = 0.02, frames: int = 1, *, methods: Sequence[str] | None = None,
+         trade: dict | None = None, model: dict | None = None, mesh: Mesh | None = None) -> Plan:
+    """Plan ``scene``'s render: the cheapest configuration whose predicted error meets ``tolerance``.
+
+    Args:
+        scene: a single-object translucent scene (several objects: the reference; caustics scenes: refused).
+        tolerance: the relative RMSE against the reference to meet, in (0, 1).
+        frames: how many frames will follow one setup (the cost is setup + frames x frame).
+        methods: restrict the methods considered (default: every applicable one).
+        trade: a measured trade of this scene (:func:`torchsss.trade.trade`): its rows replace the predictions
+            for the configurations it measured.
+        model: overrides of :data:`MODEL`'s constants.
+        mesh: the scene's mesh, if already loaded.
+
+    Returns:
+        The :class:`Plan`. When no candidate meets the tolerance, the reference at its default knobs (the truth,
+        error 0 by definition).
+
+    Raises:
+        ValueError: a tolerance outside (0, 1), frames < 1, or a caustics scene.
+
+    Examples:
+        >>> s = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "skin1",
+        ...     "lights": [{"type": "point", "position": [0, 0, 100], "intensity": 1e4}],
+        ...     "camera": {"eye": [0, 0, 80], "target": [0, 0, 0], "width": 16, "height": 16}})
+        >>> p = plan(s, tolerance=0.05)
+        >>> p.method in ("reference", "splat", "icdf", "hybrid", "lensch"), p.predicted_error <= 0.05
+        (True, True)
+    """
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance < 1.0:
+        raise ValueError(f"tolerance: expected a number in (0, 1), got {tolerance!r}")
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise ValueError(f"frames: expected an int >= 1, got {frames!r}")
+    if scene.caustics is not None:
+        raise ValueError("scene: expected a translucent scene, got a caustics scene (render it with --method "
+                         "caustics; the planner plans subsurface methods)")
+    if len(scene.objects) > 1:
+        return Plan("reference", {}, None, ["all-pairs dipole"], [], 0.0, math.nan, math.nan, float(tolerance),
+                    frames, {"method": "several objects: the reference (the planner plans single objects)"})
+    facts = SceneFacts.from_scene(scene, mesh)
+    measured = _measured(trade)
+    rows = []
+    for cand in candidates(scene, facts, float(tolerance), methods):
+        knobs = dict(cand["knobs"])
+        pred = predict(cand["method"], {**knobs, "_sources": cand.get("_sources")}, facts, scene.material,
+                       decimate=cand["decimate"], model=model)
+        key = _key(cand["method"], knobs, cand["decimate"])
+        source = "model"
+        if key in measured:
+            pred, source = {**pred, **measured[key]}, "measured"
+        total = pred["setup_s"] + frames * pred["frame_s"]
+        rows.append({**cand, **pred, "total_s": total, "source": source})
+    rows = [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]
+    rows.sort(key=lambda r: r["total_s"])
+    ok = [r for r in rows
+          if r["error"] * MARGIN <= tolerance or (r["source"] == "measured" and r["error"] <= tolerance)]
+    if ok:
+        best = ok[0]
+    else:
+        best = {"method": "reference", "knobs": {}, "decimate": None, "rules": {}, "total_s": math.nan,
+                "error": 0.0, "setup_s": math.nan, "frame_s": math.nan}
+    reasons = _reasons(best, rows, facts, float(tolerance), frames, bool(ok))
+    modelled, skipped = _terms(best, facts, scene)
+    return Plan(method=best["method"], knobs=dict(best["knobs"]), decimate=best["decimate"], modelled=modelled,
+                skipped=skipped, predicted_error=best["error"], predicted_setup_s=best["setup_s"],
+                predicted_frame_s=best["frame_s"], tolerance=float(tolerance), frames=frames, reasons=reasons,
+                facts=dataclasses.asdict(facts), candidates=rows)
+
+
+def _key(method: str, knobs: dict, decimate: int | None) -> str:
+    return json.dumps([method, {k: knobs[k] for k in sorted(knobs)}, decimate])
+
+
+def _measured(trade: dict | None) -> dict[str, dict]:
+    if not trade:
+        return {}
+    out = {}
+    for row in trade.get("rows", []):
+        knobs = dict(row["knobs"])
+        dec = knobs.pop("decimate", None)
+        out[_key(row["method"], knobs, dec)] = {"error": row["rel_rmse"], "setup_s": row["setup_s"],
+                                                "frame_s": row["frame_s"]}
+    return out
+
+
+def _reasons(best: dict, rows: list[dict], facts: SceneFacts, tolerance: float, frames: int, found: bool) -> dict:
+    reasons: dict[str, str] = {}
+    if not found:
+        reasons["method"] = (f"no faster configuration is predicted to meet {tolerance:.2%}: the reference at its "
+                             "default knobs (the truth)")
+        return reasons
+    others = {}
+    for r in rows:
+        if r["method"] != best["method"] and r["method"] not in others:
+            others[r["method"]] = r
+    beaten = []
+    for m, r in others.items():
+        if r["error"] * MARGIN > tolerance:
+            beaten.append(f"{m} best predicted {min(x['error'] for x in rows if x['method'] == m):.1%}")
+        else:
+            beaten.append(f"{m} {r['total_s']:.1f} s")
+    reasons["method"] = (f"{best['method']}: cheapest predicted to meet {tolerance:.2%} over {frames} frame(s) "
+                         f"({best['total_s']:.2f} s; {'; '.join(beaten) or 'no other method applies'})")
+    if best["method"] == "reference":
+        reasons["reference"] = "the reference itself is the cheapest way to the tolerance here"
+    reasons.update(best.get("rules", {}))
+    return reasons
+
+
+def _terms(best: dict, facts: SceneFacts, scene: Scene) -> tuple[list[str], list[str]]:
+    m, k = best["method"], best["knobs"]
+    modelled = {"reference": ["all-pairs dipole"], "splat": ["splatted dipole (light-view sources)"],
+                "icdf": ["importance-sampled global term"], "hybrid": ["local filter", "importance-sampled global"],
+                "lensch": ["local kernels", "vertex throughput"]}[m][:]
+    skipped = []
+    if k.get("shadows") == "none":
+        skipped.append("shadow rays")
+    else:
+        modelled.append("shadows")
+    if k.get("source_faces"):
+        skipped.append(f"source detail beyond {k['source_faces']} faces")
+    if best.get("decimate"):
+        skipped.append(f"mesh detail beyond {best['decimate']} faces")
+    del facts, scene
+    return modelled, skipped
+
