@@ -34,25 +34,38 @@ def _scene(mesh: str, size: float, material: str, light: list[float], res: int, 
 
 
 def calibration_scenes(res: int) -> list[Scene]:
-    """The scenes the planner's constants are fitted on (the default scene, a side-lit marble torus)."""
+    """The scenes the planner's constants are fitted on.
+
+    The default scene (back-lit skin1 spot), a side-lit marble torus, a front-lit skin2 sphere, a cream spot lit
+    from the side and behind.
+    """
     import dataclasses
 
     s0 = load_scene(default_scene_path())
     default = dataclasses.replace(s0, camera=dataclasses.replace(s0.camera, width=res, height=res))
-    return [default, _scene("torus", 30.0, "marble", [1.0, 0.3, 0.2], res, "torus 30 mm marble, side-lit")]
+    return [default, _scene("torus", 30.0, "marble", [1.0, 0.3, 0.2], res, "torus 30 mm marble, side-lit"),
+            _scene("sphere", 15.0, "skin2", [0.3, 0.5, 1.0], res, "sphere 15 mm skin2, front-lit"),
+            _scene("spot", 25.0, "cream", [-1.0, 0.2, -0.4], res, "spot 25 mm cream, side/back-lit")]
+
+
+def scene_key(scene: Scene) -> str:
+    """The folder of a scene's trade.json and trade.png under ``results/trade``."""
+    return "_".join(scene.name.translate({ord(c): None for c in ",:()"}).split()[:4])
 
 
 def main() -> None:
     parser = benchmark_parser(__doc__.splitlines()[0], "trade_calibration", RESULTS_DIR)
     parser.add_argument("--resolution", type=int, default=96)
+    parser.add_argument("--scenes", type=int, nargs="+", default=None, help="indices of the scenes to run (all)")
     args = parser.parse_args()
     setup_benchmark(parser, args)
     start = time.perf_counter()
-    scenes = calibration_scenes(48 if args.quick else args.resolution)[: 1 if args.quick else None]
+    scenes = calibration_scenes(48 if args.quick else args.resolution)
+    scenes = scenes[:1] if args.quick else [scenes[i] for i in args.scenes] if args.scenes else scenes
     records = []
     for scene in scenes:
         result = trade(scene, quick=args.quick)
-        write_trade(result, Path(args.out_dir) / "trade" / scene.name.split()[0].rstrip(":"))
+        write_trade(result, Path(args.out_dir) / "trade" / scene_key(scene))
         ref = result["reference"]
         for row in result["rows"]:
             records.append({"scene": scene.name, "resolution": scene.camera.width, "method": row["method"],

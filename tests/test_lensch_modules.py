@@ -123,8 +123,20 @@ def test_gradcheck_wrt_irradiance():
                                 GlobalResponse(vertex_weights(mesh, atlas),
                                     build_throughput(mesh, _dip(sa, ss, eta)), mat,
                                                atlas.valid_mask, method="scatter"))
-    e = (torch.rand(1, 3, 24, 24, dtype=torch.float64) * atlas.valid_mask).requires_grad_()
-    assert torch.autograd.gradcheck(module, (e,), eps=1e-6, atol=1e-8)
+    valid = atlas.valid_mask.expand(1, 3, 24, 24)
+    e = torch.rand(1, 3, 24, 24, dtype=torch.float64) * atlas.valid_mask
+
+    def on_valid(ev):  # the module as a function of the valid texels only (235 of 576: 2.5x fewer evaluations)
+        return module(torch.zeros_like(e).masked_scatter(valid, ev))
+
+    assert torch.autograd.gradcheck(on_valid, (e[valid].requires_grad_(),), eps=1e-6, atol=1e-8)
+    # the texels outside the valid mask: neither the output nor its gradient depends on them
+    e = e.requires_grad_()
+    out = module(e)
+    with torch.no_grad():
+        torch.testing.assert_close(module(e + torch.rand_like(e) * ~valid), out, rtol=0, atol=0)
+    (grad,) = torch.autograd.grad(out, e, torch.randn_like(out))
+    assert bool((grad[~valid] == 0).all()) and bool((grad[valid] != 0).any())
 
 
 def test_heterogeneous_painted_region(small):

@@ -9,7 +9,7 @@ import pytest
 from torchsss.cli import main
 from torchsss.geometry import Camera, PointLight, sphere
 from torchsss.pipelines import build
-from torchsss.plan import RULES, Plan, SceneFacts, candidates, detail_faces, plan, predict, source_count
+from torchsss.plan import MARGIN, RULES, Plan, SceneFacts, candidates, detail_faces, plan, predict, source_count
 from torchsss.scene import Scene, default_scene_path, load_scene
 
 
@@ -105,11 +105,11 @@ def test_rule_decimate_atlas_methods():
 
 
 def test_rule_samples_from_tolerance():
-    s = _scene(res=16)
+    s = _scene(res=16, light=(-0.3, 0.2, -1.0))  # back-lit: the estimator's noise matters
     n = {t: plan(s, t, methods=["icdf"]).knobs["samples"] for t in (0.2, 0.1, 0.05)}
     assert n[0.2] < n[0.1] < n[0.05]
-    # error ~ 1/sqrt(N): halving the tolerance asks about 4x the samples (powers of two)
-    assert 2 <= n[0.05] / n[0.1] <= 8
+    # error ~ N^-0.8: halving the tolerance asks about 2.4x the samples (powers of two)
+    assert 2 <= n[0.05] / n[0.1] <= 4
     p = plan(s, 0.1, methods=["icdf"])
     assert p.predicted_error <= 0.1 and "samples" in p.reasons
 
@@ -142,7 +142,7 @@ def test_frames_amortise_setup():
     assert many.predicted_frame_s <= one.predicted_frame_s
     assert many.predicted_total_s <= one.predicted_setup_s + 10_000 * one.predicted_frame_s
     for p in (one, many):  # the chosen candidate is the cheapest qualifying one
-        ok = [c for c in p.candidates if c["error"] * 1.25 <= 0.05]
+        ok = [c for c in p.candidates if c["error"] * MARGIN <= 0.05]
         assert min(c["total_s"] for c in ok) == pytest.approx(p.predicted_total_s)
 
 

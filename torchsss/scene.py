@@ -170,12 +170,27 @@ def _resolve_mesh(mesh: str, base_dir: Path, name: str) -> str:
     return str(path)
 
 
+#: The last few meshes loaded, by (file, its modification time, size, decimation, dtype): planning and rendering a
+#: scene load its mesh twice (a 268k-face scan takes seconds); meshes are not modified in place.
+_MESHES: dict[tuple, Mesh] = {}
+_MESH_CACHE_SIZE = 4
+
+
 def _load(source: str, key: str, size_mm: float | None, decimate: int | None, dtype: torch.dtype) -> Mesh:
-    """load_mesh with its errors prefixed by the scene key that named the file (``scene.mesh``, ...)."""
+    """load_mesh with its errors prefixed by the scene key that named the file (``scene.mesh``, ...), cached."""
+    path = Path(source)
+    stamp = path.stat().st_mtime_ns if path.is_file() else None
+    cache_key = (str(path.resolve()) if stamp is not None else source, stamp, size_mm, decimate, dtype)
+    if cache_key in _MESHES:
+        return _MESHES[cache_key]
     try:
-        return load_mesh(source, size_mm, decimate_to=decimate, dtype=dtype)
+        mesh = load_mesh(source, size_mm, decimate_to=decimate, dtype=dtype)
     except (ValueError, FileNotFoundError) as err:
         raise ValueError(f"{key}: {err}") from err
+    if len(_MESHES) >= _MESH_CACHE_SIZE:
+        _MESHES.pop(next(iter(_MESHES)))
+    _MESHES[cache_key] = mesh
+    return mesh
 
 
 @dataclass(frozen=True)
