@@ -8,17 +8,21 @@ and its setup and frame time (:func:`predict`), and returns the cheapest candida
 tolerance (setup + ``frames`` x frame time: a method with costly setup and cheap frames wins only when many
 frames follow) as a :class:`Plan`, with a one-line reason for every choice.
 
-The predictions are closed forms with constants fitted to the measured trade (:mod:`torchsss.trade`, the rows of
-``benchmarks/results/trade_calibration.json``, measured on scenes other than the planner's verification scenes;
-``benchmarks/bench_planner.py`` verifies it):
+The predictions are closed forms of the scene facts with constants fitted to the measured trade
+(:mod:`torchsss.trade`; :data:`MODEL` says which rows), verified on other scenes by
+``benchmarks/bench_planner.py``. Two facts carry most of the scene dependence: ``unlit`` (how much of the view faces
+away from the light: back-lit views show light that crossed the object, the far field that truncation and sampling
+miss) and :func:`depth` (the object's thickness in scattering lengths, weighted by ``unlit``):
 
-* reference: the sources' lattice error :func:`~torchsss.physics.splat_alias_error` at their effective spacing
-  :math:`\\sqrt{A / n}` (every face holds at least one sample, so a fine mesh samples finer than asked); its
-  time is the pair count (covered pixels x sources).
-* splat: a floor plus the alias error of the light-view grid's texel and the truncation tolerance; time ~ splats
-  x footprint pixels.
-* icdf / hybrid: Monte Carlo, :math:`a / \\sqrt{N}` (hybrid: plus its split's floor); time ~ pixels x N.
-* lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput, blending) dominates.
+* reference: linear in the tolerance ``eps`` of its spacing plus the sources' lattice error
+  :func:`~torchsss.physics.splat_alias_error` at their effective spacing :math:`\\sqrt{A / n}` (every face holds at
+  least one sample, so a fine mesh samples finer than asked); time ~ covered pixels x sources.
+* splat: a floor, a truncation term ~ ``eps`` growing with ``unlit`` and ``depth``, and a light-view sampling term
+  ~ 1/oversample^2; time ~ splats x footprint pixels.
+* icdf / hybrid: Monte Carlo, :math:`a\\,N^{-p}` with ``a`` growing with ``unlit`` and ``depth`` (hybrid: plus its
+  split's floor); time ~ pixels x N.
+* lensch: a floor plus a texel-size term (and a large error without blending); setup (atlas, kernels, throughput,
+  blending) dominates.
 
 "Model only what a scene requires" (:data:`RULES`, each reported in ``Plan.reasons`` when it applies):
 
@@ -26,7 +30,7 @@ The predictions are closed forms with constants fitted to the measured trade (:m
   scattering length can show (a 268k-face scan does not need 268k faces for an atlas).
 * ``sources``: the reference's sources come from the mesh decimated to its sample spacing (``source_faces``).
 * ``shadows``: no shadow rays when nothing can occlude the light (a convex object: n.l > 0 is visibility).
-* ``samples``: the icdf/hybrid sample count N from the tolerance (error ~ 1/sqrt(N)).
+* ``samples``: the icdf/hybrid sample count N from the tolerance (error ~ N^-p).
 * ``splat_budget``: the splat tolerance and grid oversampling from the tolerance (Shah eq. 6.16-6.18).
 * ``blend``: Lensch's blending only where the planned kernel reaches the neighbouring vertices
   (:func:`~torchsss.geometry.lensch.plan_lensch`).
@@ -61,7 +65,7 @@ RULES = {
     "decimate": "atlas methods: decimate the mesh to the detail the pixel footprint and the scattering length show",
     "sources": "reference: sample sources from the mesh decimated to the sample spacing",
     "shadows": "reference: no shadow rays when nothing occludes the light (convex object)",
-    "samples": "icdf/hybrid: N from the tolerance (error ~ 1/sqrt(N))",
+    "samples": "icdf/hybrid: N from the tolerance (error ~ N^-p)",
     "splat_budget": "splat: the budget's tolerance and the grid from the tolerance",
     "blend": "lensch: blending only where the kernel reaches the neighbouring vertices",
     "reference": "the reference itself when it is the cheapest way to the tolerance",
