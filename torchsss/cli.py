@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchsss._json import jsonable
 from torchsss.io import auto_exposure, tonemap, write_exr, write_png
 from torchsss.physics import (
     chang_rp,
@@ -208,17 +209,17 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     summary = {"scene": str(path), "method": method, **what, "width": scene.camera.width,
                "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "seconds": seconds,
                "setup_s": st.get("setup_s"), "frame_s": st.get("frame_s"), "frame_median_s": st.get("frame_median_s"),
-               "fps": st.get("fps"), "frames": frames, "knobs": _jsonable(st.get("knobs", {})),
+               "fps": st.get("fps"), "frames": frames, "knobs": jsonable(st.get("knobs", {})),
                "options": {k: v for k, v in options.items() if k != "progress"},
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
                "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
                                          / max(1, int(result.mask.sum()))],
                "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev,
-               "stats": _jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
+               "stats": jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
     if planned is not None:
         p = planned.to_json()
         p["candidates"] = p["candidates"][:10]
-        summary["plan"] = _jsonable(p)
+        summary["plan"] = jsonable(p)
     json_path.write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -240,7 +241,7 @@ def plan_command(scene_arg: str, *, tolerance: float, frames: int, resolution: t
     p = plan(scene, tolerance, frames)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(_jsonable(p.to_json()), indent=2))
+        json_out.write_text(json.dumps(jsonable(p.to_json()), indent=2))
     return p
 
 
@@ -252,19 +253,6 @@ def trade_command(scene_arg: str, out: Path, *, quick: bool = False, resolution:
     js, png = write_trade(result, out)
     result["json"], result["png"] = str(js), None if png is None else str(png)
     return result
-
-
-def _jsonable(value: object) -> object:
-    """Tuples, tensors and nested containers as JSON values."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, torch.Tensor):
-        return value.tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    return value
 
 
 #: Per-method knob flags of ``render``: argparse dest -> (knob, the methods that take it, default).

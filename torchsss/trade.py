@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from torchsss._json import jsonable
 from torchsss.pipelines import RenderResult
 from torchsss.registry import ENVIRONMENT_METHODS, OBJECT_METHODS, render_scene
 from torchsss.scene import Scene
@@ -241,7 +242,7 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
     bar.set_postfix_str("reference (truth)")
     ref, ref_mib = _run(scene, "reference", {}, 1, dtype)
     bar.update(1)
-    reference = {"method": "reference", "knobs": _json(ref.stats.get("knobs", {})), "setup_s": ref.stats["setup_s"],
+    reference = {"method": "reference", "knobs": jsonable(ref.stats.get("knobs", {})), "setup_s": ref.stats["setup_s"],
                  "frame_s": ref.stats["frame_median_s"], "total_s": ref.stats["total_s"], "peak_mib": ref_mib,
                  "covered_pixels": int(ref.mask.sum())}
     rows = []
@@ -251,25 +252,13 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
         rows.append({"method": method, "knobs": dict(knobs), "setup_s": out.stats["setup_s"],
                      "frame_s": out.stats["frame_median_s"], "total_s": out.stats["total_s"],
                      **image_error(out, ref), "peak_mib": mib, "frames": frames,
-                     "stats_knobs": _json(out.stats.get("knobs", {}))})
+                     "stats_knobs": jsonable(out.stats.get("knobs", {}))})
         bar.update(1)
         del out
     bar.close()
     return {"scene": scene.name, "width": scene.camera.width, "height": scene.camera.height,
             "reference": reference, "rows": rows, "pareto": pareto_front(rows),
             "seconds": time.perf_counter() - start}
-
-
-def _json(value: object) -> object:
-    if isinstance(value, dict):
-        return {str(k): _json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json(v) for v in value]
-    if isinstance(value, torch.Tensor):
-        return value.tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    return value
 
 
 _COLOURS = {"reference": "black", "splat": "tab:blue", "icdf": "tab:orange", "hybrid": "tab:green",
@@ -320,6 +309,6 @@ def write_trade(result: dict, out: Path) -> tuple[Path, Path | None]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     js = out / "trade.json"
-    js.write_text(json.dumps(_json(result), indent=2))
+    js.write_text(json.dumps(jsonable(result), indent=2))
     png = out / "trade.png"
     return js, png if plot_trade(result, png) else None
