@@ -2,8 +2,9 @@
 
 Reads ``results/trade/<scene>/trade.json`` of every scene of ``bench_trade.calibration_scenes`` that has one,
 computes each scene's closed-form facts (``torchsss.plan.SceneFacts``) and fits, per method, the constants of
-``torchsss.plan.predict``: the error constants on log(predicted / measured) with under-prediction weighted 10x and errors under 0.3% clamped (a
-plan must not promise an error it misses; over-prediction only costs time), the time constants on the symmetric
+``torchsss.plan.predict``: the error constants on log(predicted / measured) with under-prediction weighted 10x
+and errors under 0.3% clamped (a plan must not promise an error it misses; over-prediction only costs time), the
+time constants on the symmetric
 log ratio (with ``--times``; the time constants are otherwise kept: they are set by hand from the same rows,
 since a free fit of a few scenes drives some terms to zero). Prints the fitted constants as a Python dict (to paste
 into ``MODEL``) and the worst under- and over-prediction per method, and writes ``results/planner_fit.json``.

@@ -467,3 +467,23 @@ def test_plan_lensch_blends_only_when_the_kernel_reaches_the_vertices():
     # coarse mesh (edges ~10x the texels times 11): no kernel up to 11 reaches half an edge -> Lensch's k 7, no blend
     coarse = plane(30.0, 30.0, 6)
     assert plan_lensch(coarse, 1024) == (7, False)
+
+
+def test_throughput_entry_cap_refuses_before_allocating():
+    """A profile that reaches across the object keeps every vertex pair: over the cap the build refuses with a
+    ValueError that says how far to decimate, instead of growing past the machine's memory."""
+    import pytest
+
+    from torchsss.geometry import sphere
+    from torchsss.geometry.lensch import build_throughput, estimate_throughput_entries
+    from torchsss.modules import DipoleMaterial
+    from torchsss.pipelines.lensch import build_lensch
+
+    m, mat = sphere(10.0, 3), DipoleMaterial.from_preset("marble")  # marble: r_max beyond the 20 mm sphere
+    est = estimate_throughput_entries(m, mat)
+    assert est > 0.8 * m.num_vertices ** 2  # nearly every pair
+    with pytest.raises(ValueError, match="decimate the mesh to about"):
+        build_throughput(m, mat, max_entries=est // 4)
+    with pytest.raises(ValueError, match="max_entries"):
+        build_lensch(m, mat, resolution=64, max_entries=est // 4)  # refused before the atlas is built
+    assert build_throughput(m, mat, max_entries=None).rows.numel() == pytest.approx(est, rel=0.2)

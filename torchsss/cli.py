@@ -419,6 +419,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"reference: setup {ref['setup_s']:.2f} s, frame {ref['frame_s']:.2f} s")
         print(f"{'method':<10} {'knobs':<40} {'setup s':>8} {'frame s':>8} {'rel RMSE':>9} {'max err':>8} {'MiB':>6}")
         for i, row in enumerate(result["rows"]):
+            if "refused" in row:
+                print(f"{row['method']:<10} {json.dumps(row['knobs']):<40} refused: {row['refused']}")
+                continue
             mark = " *" if i in result["pareto"] else ""
             print(f"{row['method']:<10} {json.dumps(row['knobs']):<40} {row['setup_s']:8.2f} {row['frame_s']:8.3f} "
                   f"{row['rel_rmse']:9.2%} {row['max_error']:8.2%} {row['peak_mib']:6.0f}{mark}")

@@ -51,7 +51,12 @@ from typing import ClassVar
 import torch
 
 from torchsss._checks import validation
-from torchsss.geometry.lensch import ATLAS_UTILIZATION, BLEND_MIN_REACH
+from torchsss.geometry.lensch import (
+    ATLAS_UTILIZATION,
+    BLEND_MIN_REACH,
+    MAX_THROUGHPUT_ENTRIES,
+    estimate_throughput_entries,
+)
 from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
 from torchsss.physics.budget import splat_alias_error
@@ -139,6 +144,9 @@ class SceneFacts:
         source_faces: per :data:`REFERENCE_EPS`, the face count the sources need (:func:`source_faces`).
         sources_decimated: per :data:`REFERENCE_EPS`, the source count on the mesh decimated to ``source_faces``
             (about 1.2 per face: a decimated 81920-face sphere at 8 A / h^2 faces gave 1.15).
+        throughput_entries: Lensch's vertex throughput entries on the full mesh at its default threshold
+            (:func:`~torchsss.geometry.lensch.estimate_throughput_entries`); they scale with the square of the
+            vertex count where the profile reaches across the object.
     """
 
     faces: int
@@ -159,6 +167,7 @@ class SceneFacts:
     sources: tuple[int, ...]
     source_faces: tuple[int, ...]
     sources_decimated: tuple[int, ...]
+    throughput_entries: int
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh: Mesh | None = None) -> SceneFacts:
@@ -198,7 +207,8 @@ class SceneFacts:
                    covered_px=covered,
                    pixels=cam.width * cam.height, lights=len(scene.lights), unlit=unlit,
                    ell_mm=tuple(float(x) for x in ell), r_max_mm=prof.r_max_channels(TRUTH_EPS),
-                   spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated)
+                   spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated,
+                   throughput_entries=estimate_throughput_entries(mesh, mat, rows=64))
 
 
 def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
@@ -495,6 +505,13 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                             f"{tolerance:.2%} with margin {MARGIN}")
             out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
         elif method == "lensch":
+            fit = int(facts.faces * math.sqrt(0.8 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
+            if fit < facts.faces and (decimate is None or fit < decimate):
+                decimate = max(500, fit)
+                rules = {**rules, "decimate": (
+                    f"{facts.faces} -> {decimate} faces: the vertex throughput would keep ~"
+                    f"{facts.throughput_entries:.3g} entries (the profile reaches across the object), over the "
+                    f"{MAX_THROUGHPUT_ENTRIES:.0e} that fit in 1-2 GB")}
             for res in (256, 512):
                 r = dict(rules)
                 edge = facts.median_edge_mm * math.sqrt(facts.faces / decimate) if decimate else facts.median_edge_mm

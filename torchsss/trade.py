@@ -217,8 +217,9 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
     Returns:
         ``{"scene", "reference": {...}, "rows": [...], "pareto": [...], "seconds"}``; each row holds ``method``,
         ``knobs`` (as given), ``setup_s``, ``frame_s`` (median), ``total_s``, ``rel_rmse``, ``max_error``,
-        ``peak_mib`` and ``stats_knobs`` (every knob as the renderer resolved it); ``pareto`` lists the indices of
-        the rows on the error / frame-time front.
+        ``peak_mib`` and ``stats_knobs`` (every knob as the renderer resolved it); a configuration that refuses
+        to build (a ValueError, e.g. Lensch's throughput over its memory cap) gets a row with ``refused`` (the
+        message) instead; ``pareto`` lists the indices of the rows on the error / frame-time front.
 
     Raises:
         ValueError: a caustics scene (nothing to trade), or an unknown or inapplicable method.
@@ -248,7 +249,12 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
     rows = []
     for method, knobs in runs:
         bar.set_postfix_str(f"{method} {knobs}")
-        out, mib = _run(scene, method, knobs, frames, dtype)
+        try:
+            out, mib = _run(scene, method, knobs, frames, dtype)
+        except ValueError as err:  # a configuration that refuses to build (e.g. memory caps): recorded, not fatal
+            rows.append({"method": method, "knobs": dict(knobs), "refused": str(err)})
+            bar.update(1)
+            continue
         rows.append({"method": method, "knobs": dict(knobs), "setup_s": out.stats["setup_s"],
                      "frame_s": out.stats["frame_median_s"], "total_s": out.stats["total_s"],
                      **image_error(out, ref), "peak_mib": mib, "frames": frames,
@@ -257,7 +263,9 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
         del out
     bar.close()
     return {"scene": scene.name, "width": scene.camera.width, "height": scene.camera.height,
-            "reference": reference, "rows": rows, "pareto": pareto_front(rows),
+            "reference": reference, "rows": rows,
+            "pareto": [i for i in pareto_front([r if "refused" not in r else {"frame_s": math.inf, "rel_rmse": math.inf}
+                                                for r in rows]) if "refused" not in rows[i]],
             "seconds": time.perf_counter() - start}
 
 
@@ -274,7 +282,8 @@ def plot_trade(result: dict, path: Path) -> bool:
         import matplotlib.pyplot as plt
     except ImportError:
         return False
-    rows = result["rows"]
+    front = [result["rows"][i] for i in result["pareto"]]
+    rows = [r for r in result["rows"] if "refused" not in r]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     floor = 1e-4
     for method in dict.fromkeys(r["method"] for r in rows):
@@ -282,7 +291,6 @@ def plot_trade(result: dict, path: Path) -> bool:
         for ax, key in zip(axes, ("frame_s", "setup_s")):
             ax.loglog([max(r[key], 1e-3) for r in sel], [max(r["rel_rmse"], floor) for r in sel], "o",
                       color=_COLOURS.get(method), label=method, alpha=0.8)
-    front = [rows[i] for i in result["pareto"]]
     axes[0].loglog([r["frame_s"] for r in front], [max(r["rel_rmse"], floor) for r in front], "-", color="grey",
                    lw=2, alpha=0.5, label="Pareto front")
     ref = result["reference"]

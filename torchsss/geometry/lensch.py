@@ -33,16 +33,20 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from torchsss._checks import validation
 from torchsss.geometry.atlas import Atlas
 from torchsss.geometry.mesh import Mesh, check_mesh
 
 __all__ = [
+    "MAX_THROUGHPUT_ENTRIES",
     "BlendWeights",
     "LocalKernelGeometry",
     "Throughput",
     "VertexWeights",
     "blending_weights",
     "build_throughput",
+    "check_entries",
+    "estimate_throughput_entries",
     "local_kernel_geometry",
     "plan_kernel_size",
     "plan_lensch",
@@ -348,6 +352,67 @@ def _keep_radius(area: float, profile: Callable[[Tensor], Tensor], thr: float, d
     return hi * (1.0 + 1e-9) + 1e-12
 
 
+#: Default cap on the throughput's kept entries: each costs about 100-200 bytes at build and per frame (indices,
+#: distances, the profile's float temporaries), so 1e7 entries stay within 1-2 GB. A 30 mm marble bunny decimated
+#: to 20k faces asks for ~1e8 (every vertex pair) and was killed at 24 GB before this cap.
+MAX_THROUGHPUT_ENTRIES = 10_000_000
+
+
+def estimate_throughput_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor], *, threshold: float = 1e-5,
+                                relative: bool = True, rows: int = 128, seed: int = 0) -> int:
+    """The number of entries :func:`build_throughput` keeps, estimated from ``rows`` random source vertices.
+
+    Counts exactly which receivers each sampled source keeps (the same test as the build) and scales by the vertex
+    count; costs ``rows x N`` distances. Use it to refuse or re-plan before an atlas and a throughput are built.
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> from torchsss.modules import DipoleMaterial
+        >>> m, mat = sphere(10.0, 2), DipoleMaterial.from_preset("marble")
+        >>> est, exact = estimate_throughput_entries(m, mat), build_throughput(m, mat).rows.numel()
+        >>> 0.8 < est / exact < 1.25
+        True
+    """
+    mesh = check_mesh(mesh)
+    threshold, relative = _check_threshold(threshold, relative)
+    prof, _ = _profile64(profile, mesh.vertices.device)
+    v = mesh.vertices.detach().to(torch.float64)
+    va = mesh.vertex_areas.detach().to(torch.float64)
+    n = v.shape[0]
+    thr = _absolute_threshold(va, prof, threshold, relative)
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randperm(n, generator=g)[:rows].to(v.device) if n > rows else torch.arange(n, device=v.device)
+    kept = 0
+    with validation(False):  # the profile was validated by _profile64's probe
+        for lo in range(0, idx.numel(), 32):
+            i = idx[lo:lo + 32]
+            d = _distance(v[i, None, :], v[None, :, :])
+            kept += int((va[i, None] * _max_rd(d, prof) >= thr).sum())
+    return round(kept * n / idx.numel())
+
+
+def check_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor], *, threshold: float, relative: bool,
+                  max_entries: int | None) -> int | None:
+    """Raise a ValueError naming the way out when the throughput would keep more than ``max_entries`` entries.
+
+    Returns the estimate (None when ``max_entries`` is None).
+    """
+    if max_entries is None:
+        return None
+    if isinstance(max_entries, bool) or not isinstance(max_entries, numbers.Integral) or max_entries < 1:
+        raise ValueError(f"max_entries: expected a positive int or None, got {max_entries!r}")
+    est = estimate_throughput_entries(mesh, profile, threshold=threshold, relative=relative)
+    if est > max_entries:
+        # entries grow like the square of the vertex count where the profile reaches across the object
+        faces = max(4, int(mesh.num_faces * math.sqrt(max_entries / est)))
+        raise ValueError(
+            f"throughput: expected at most max_entries={max_entries} vertex pairs (about 1-2 GB), got an estimated "
+            f"{est:.3g} for {mesh.num_vertices} vertices (the profile reaches across the object); decimate the mesh "
+            f"to about {faces} faces (a scene's \"decimate\"), raise the threshold (now {threshold}) or raise "
+            "max_entries")
+    return est
+
+
 def build_throughput(
     mesh: Mesh,
     profile: Callable[[Tensor], Tensor],
@@ -357,6 +422,7 @@ def build_throughput(
     zero_diagonal: bool = False,
     block_rows: int | None = None,
     max_memory_mb: float = 256.0,
+    max_entries: int | None = MAX_THROUGHPUT_ENTRIES,
     progress: bool = False,
 ) -> Throughput:
     """Sparse vertex-to-vertex throughput pattern of Lensch §5.2 / §6.2.
@@ -386,6 +452,8 @@ def build_throughput(
         zero_diagonal: Drop ``i == j`` (Lensch's :math:`F^0` for blending).
         block_rows: Source rows per block; default from ``max_memory_mb``.
         max_memory_mb: Memory budget of one block's temporaries.
+        max_entries: Refuse (ValueError, before allocating) when :func:`estimate_throughput_entries` predicts more
+            kept entries than this (default :data:`MAX_THROUGHPUT_ENTRIES`, about 1-2 GB); None: no cap.
         progress: Show a tqdm bar over the blocks.
 
     Returns:
@@ -393,7 +461,7 @@ def build_throughput(
 
     Raises:
         TypeError: wrong argument types.
-        ValueError: negative threshold, bad material or sizes.
+        ValueError: negative threshold, bad material or sizes, or more entries than ``max_entries``.
 
     Examples:
         >>> from torchsss.geometry import sphere
@@ -414,6 +482,7 @@ def build_throughput(
         raise TypeError(f"max_memory_mb: expected a positive number, got {type(max_memory_mb).__name__}")
     if not math.isfinite(float(max_memory_mb)) or max_memory_mb <= 0:
         raise ValueError(f"max_memory_mb: expected a positive finite number, got {max_memory_mb!r}")
+    check_entries(mesh, profile, threshold=threshold, relative=relative, max_entries=max_entries)
     prof, channels = _profile64(profile, mesh.vertices.device)
     n = mesh.num_vertices
     if block_rows is None:

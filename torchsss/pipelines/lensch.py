@@ -22,8 +22,10 @@ from torchsss.geometry.atlas_frame import camera_uv, irradiance_atlas
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lensch import (
+    MAX_THROUGHPUT_ENTRIES,
     blending_weights,
     build_throughput,
+    check_entries,
     local_kernel_geometry,
     plan_kernel_size,
     plan_lensch,
@@ -53,7 +55,7 @@ class LenschScene:
 
 def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int = 512, kernel_size: int | None = None,
                  threshold: float = 1e-5, relative: bool = True, blend: bool | None = None,
-                 progress: bool = False) -> LenschScene:
+                 max_entries: int | None = MAX_THROUGHPUT_ENTRIES, progress: bool = False) -> LenschScene:
     """Precompute everything the per-frame Lensch module needs (see the module docstring).
 
     ``material`` is a :class:`~torchsss.physics.Material` record, a preset name or a profile module (shared by the
@@ -61,10 +63,14 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     the vertex spacing and the texel size (:func:`~torchsss.geometry.lensch.plan_lensch`: blending with a kernel
     that reaches ~0.7 median edges, 7 for Lensch's meshes and up to 11 for coarse ones; no blending, k = 7, when no
     kernel up to 11 reaches half an edge). Without blending the kernel only has to hold the near field and 7 is
-    used.
+    used. ``max_entries`` caps the throughput's size
+    (:func:`~torchsss.geometry.lensch.check_entries`; None: no cap).
     """
     stats: dict = {}
     mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
+    # the throughput's size first, before the atlas: a ValueError that says how far to decimate
+    stats["throughput_estimate"] = check_entries(mesh, mat, threshold=threshold, relative=relative,
+                                                 max_entries=max_entries)
     if blend is None:
         planned_k, blend = plan_lensch(mesh, resolution)
         if kernel_size is None:
@@ -78,7 +84,8 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     t1 = time.perf_counter()
     geom = local_kernel_geometry(atlas, kernel_size)
     weights = vertex_weights(mesh, atlas)
-    tp = build_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend, progress=progress)
+    tp = build_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend, max_entries=None,
+                          progress=progress)
     stats.update(t_kernels_throughput_s=time.perf_counter() - t1, nnz=int(tp.rows.shape[0]),
                  vertices=mesh.num_vertices, cutoff_mm=tp.cutoff_mm)
     direct = correction = None
@@ -111,7 +118,8 @@ class LenschRenderer(Renderer):
 
     method = "lensch"
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
-                                    blend=None, shadow_resolution=1024, specular=False, roughness=0.3)
+                                    blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
+                                    max_entries=MAX_THROUGHPUT_ENTRIES)
 
     @classmethod
     def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
@@ -123,7 +131,7 @@ class LenschRenderer(Renderer):
         k = self.knobs
         self.built = build_lensch(self.mesh, self.material, resolution=k["atlas_resolution"],
                                   kernel_size=k["kernel_size"], threshold=k["threshold"], relative=k["relative"],
-                                  blend=k["blend"], progress=self.progress)
+                                  blend=k["blend"], max_entries=k["max_entries"], progress=self.progress)
         k["kernel_size"] = int(self.built.module.local.kernel_size)
         k["blend"] = self.built.module.direct is not None
         self.module = self.built.module
