@@ -112,6 +112,8 @@ MODEL: dict[str, float] = {
 MARGIN = 1.1
 #: The truth's tolerance (the reference's default ``eps``).
 TRUTH_EPS = 0.01
+#: The splat budget tolerances the planner considers.
+SPLAT_EPS = (0.003, 0.01, 0.03)
 #: The reference tolerances the planner considers (the first is the truth).
 REFERENCE_EPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 
@@ -481,7 +483,10 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                     r["shadows"] = "convex object: a sample faces the light exactly when the light sees it"
                 out.append({"method": method, "knobs": knobs, "decimate": None, "rules": r, "_sources": n})
         elif method == "splat":
-            for eps in (0.003, 0.01, 0.03, 0.1):
+            # eps 0.1 is left out: the truncation drops 10% of every splat's energy, and where that shows (thin
+            # parts of long-scattering materials, front-lit) is beyond the model: in the verification run all 9 of
+            # its 27 planned renders with eps 0.1 (front-lit chicken1, chicken2, skin1) missed their tolerance
+            for eps in SPLAT_EPS:
                 for over in (1.0, 2.0, 4.0):
                     r = dict(rules)
                     r["splat_budget"] = f"eps {eps} (r_max {prof.r_max(eps):.3g} mm), oversample {over}"
