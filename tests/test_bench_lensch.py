@@ -47,8 +47,9 @@ def test_checker_plane_scene_has_a_seam_and_lensch_follows_the_reference():
     u = mesh.face_uvs[..., 0].mean(1)
     left = mesh.vertices[mesh.faces][:, :, 0].mean(1) < 0
     assert bool((u[left] < 0.5).all()) and bool((u[~left] > 0.5).all())  # the seam x = 0 splits the charts
+    # receivers on every 2nd texel (2970 of 11880): the reference sum was 80% of the time; errors as at stride 1
     rec = bench_lensch.run_plane("skin1", size_mm=12.0, segments=12, square_mm=3.0, atlas_res=128, kernel=7,
-                                 spacing_mm=0.5)
+                                 spacing_mm=0.5, stride=2)
     for key in ("rel_rmse_all", "rel_rmse_edges", "rel_rmse_seam", "rel_rmse_rest"):
         assert math.isfinite(rec[key]) and 0 <= rec[key] < 0.25, (key, rec)
     assert rec["receivers"] > 100

@@ -114,6 +114,17 @@ def test_material_gradients_flow(small):
     assert all(g is not None and bool(torch.isfinite(g).all()) and float(g.abs().sum()) > 0 for g in grads)
 
 
+@pytest.fixture
+def _one_thread_for_this_test():
+    """conftest's one_thread for a single test: 24 x 24 tensors, ~2000 evaluations (one intra-op thread is as fast
+    on an idle machine and several times faster on a loaded one)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.usefixtures("_one_thread_for_this_test")
 def test_gradcheck_wrt_irradiance():
     mesh = sphere(4.0, 1, dtype=torch.float64)
     atlas = build_atlas(mesh, 24, kernel_size=3)
@@ -131,10 +142,10 @@ def test_gradcheck_wrt_irradiance():
 
     assert torch.autograd.gradcheck(on_valid, (e[valid].requires_grad_(),), eps=1e-6, atol=1e-8)
     # the texels outside the valid mask: neither the output nor its gradient depends on them
+    with torch.no_grad():
+        torch.testing.assert_close(module(e + torch.rand_like(e) * ~valid), module(e), rtol=0, atol=0)
     e = e.requires_grad_()
     out = module(e)
-    with torch.no_grad():
-        torch.testing.assert_close(module(e + torch.rand_like(e) * ~valid), out, rtol=0, atol=0)
     (grad,) = torch.autograd.grad(out, e, torch.randn_like(out))
     assert bool((grad[~valid] == 0).all()) and bool((grad[valid] != 0).any())
 
@@ -163,6 +174,11 @@ def test_heterogeneous_painted_region(small):
     torch.testing.assert_close(b2, 2.0 * b0)
 
 
+# with -m slow: the same LenschTranslucency graph (GlobalResponse "auto" is "scatter" while exporting) is exported in
+# the default run by tests/test_export_onnx.py::test_registry_entry_matches_eager_at_test_size[lensch] (with a
+# dynamic batch), and "auto" resolving to "scatter" under export by tests/test_sparse_apply.py's
+# test_onnx_export_pattern_buffers
+@pytest.mark.slow
 def test_per_frame_module_exports_to_onnx(small, tmp_path):
     pytest.importorskip("onnxruntime")
     from torchsss.export import export_onnx, run_onnxruntime

@@ -34,6 +34,10 @@ def test_eta_edit_on_a_prebuilt_renderer_matches_a_fresh_build(vs_reference):
     assert rel_rmse(edited, fresh) < 1e-5
 
 
+# 20 s (a dense 2562-vertex throughput at atlas 256): with -m slow. In the default run lensch against the reference
+# is test_every_profile_against_the_reference_with_the_same_profile[dipole] (same skin1, a tighter 7% bound) and
+# render_lensch itself runs in tests/test_bench_lensch.py::test_bench_lensch_quick_smoke
+@pytest.mark.slow
 def test_render_lensch_close_to_reference():
     mesh = sphere(10.0, 4)
     material = Material.from_json("skin1")

@@ -638,6 +638,10 @@ def _onnx_case(b, n, h, w, seed):
     return tuple(x.float() for x in (o, r, tex, vp))
 
 
+# the same graph (NewtonRaphsonSearch(2, "newton", return_info=True) wraps this call with these arguments, the same
+# dynamic dims and test size) is exported in the default run by tests/test_search_module.py's
+# test_onnx_export_dynamic_sizes, which also compares with float64; this twin runs with -m slow
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:`isinstance\\(treespec, LeafSpec\\)` is deprecated:FutureWarning")
 @pytest.mark.filterwarnings("ignore:# The axis name:UserWarning")
 def test_onnx_export_dynamic_size(tmp_path):

@@ -97,6 +97,10 @@ def test_bad_arguments_raise_typed_errors():
         sampler(np.ones((1, 1, 8, 8)), torch.rand(1, 4, 2))
 
 
+# with -m slow: IcdfSampler.forward is icdf_sample(pdf, u, levels); the same graph (levels 6, the same dynamic dims)
+# is exported in the default run by tests/test_icdf_sample.py::test_onnx_export_dynamic_sizes (other batch, sample
+# count and map size; empty maps, a delta, holes, extreme u; bit for bit)
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:`isinstance\\(treespec, LeafSpec\\)` is deprecated:FutureWarning")
 @pytest.mark.filterwarnings("ignore:# The axis name:UserWarning")
 def test_onnx_export_dynamic_sample_count(tmp_path):
