@@ -297,7 +297,10 @@ def plot_trade(result: dict, path: Path) -> bool:
     axes[0].axvline(ref["frame_s"], color="black", ls=":", label=f"reference frame {ref['frame_s']:.2f} s")
     axes[1].axvline(ref["setup_s"] + ref["frame_s"], color="black", ls=":",
                     label=f"reference setup + frame {ref['setup_s'] + ref['frame_s']:.2f} s")
+    from matplotlib.ticker import NullFormatter
+
     for ax, xlabel in zip(axes, ("median frame time (s)", "setup time (s)")):
+        ax.xaxis.set_minor_formatter(NullFormatter())  # short ranges: the minor labels overlap
         for t in (0.01, 0.02, 0.05):
             ax.axhline(t, color="grey", lw=0.5, ls="--")
         ax.set_xlabel(xlabel)
