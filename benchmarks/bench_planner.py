@@ -32,7 +32,7 @@ import torch
 from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark
 from torchsss.plan import plan
 from torchsss.scene import Scene
-from torchsss.trade import ATLAS_FACES, _run, image_error
+from torchsss.trade import ATLAS_FACES, image_error, run_config
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
@@ -103,13 +103,13 @@ def main() -> None:
         records += [r for r in json.loads(args.merge.read_text()) if r["scene"] not in {s.name for s in chosen}]
     for scene in chosen:
         t_scene = time.perf_counter()
-        truth, _ = _run(scene, "reference", {}, 1, torch.float32)
+        truth, _ = run_config(scene, "reference", {}, 1, torch.float32)
         truth_s = truth.stats["setup_s"] + truth.stats["frame_median_s"]
         faces = scene.load_mesh().num_faces
         rows = [{"method": "reference", "knobs": {}, "time_s": truth_s, "rel_rmse": 0.0, "kind": "truth"}]
         for method, knobs in sweep(faces):
             try:
-                out, _ = _run(scene, method, knobs, 1, torch.float32)
+                out, _ = run_config(scene, method, knobs, 1, torch.float32)
             except ValueError as err:  # e.g. Lensch's throughput over its memory cap: refused, not run
                 print(f"  {scene.name}: {method} {knobs}: refused: {err}", flush=True)
                 continue
@@ -123,7 +123,7 @@ def main() -> None:
             p = plan(scene, tol)
             plan_s = time.perf_counter() - t0
             knobs = {**p.knobs, **({"decimate": p.decimate} if p.decimate else {})}
-            out, _ = _run(scene, p.method, knobs, 1, torch.float32)
+            out, _ = run_config(scene, p.method, knobs, 1, torch.float32)
             row = {"method": p.method, "knobs": knobs, "kind": f"plan {tol}", "plan_s": plan_s,
                    "time_s": out.stats["setup_s"] + out.stats["frame_median_s"], **image_error(out, truth),
                    "predicted_error": p.predicted_error, "predicted_s": p.predicted_total_s}

@@ -382,10 +382,11 @@ def detail_faces(facts: SceneFacts) -> int | None:
 
 
 def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: int | None = None,
-            model: dict | None = None) -> dict[str, float]:
+            model: dict | None = None, sources: int | None = None) -> dict[str, float]:
     """Predicted ``error``, ``setup_s`` and ``frame_s`` of ``method`` with ``knobs`` on a scene (see the module).
 
-    ``material`` is a :class:`~torchsss.physics.Material` (its tensors feed the alias error).
+    ``material`` is a :class:`~torchsss.physics.Material` (its tensors feed the alias error); ``sources`` is the
+    reference's source count when it differs from the facts' (decimated sources).
     """
     m = {**MODEL, **(model or {})}
     prof = _Profile.of(material)
@@ -395,7 +396,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     if method == "reference":
         eps = float(knobs.get("eps", TRUTH_EPS))
         n0 = facts.sources[0]
-        n = knobs.get("_sources") or (facts.sources[REFERENCE_EPS.index(eps)] if eps in REFERENCE_EPS else n0)
+        n = sources or (facts.sources[REFERENCE_EPS.index(eps)] if eps in REFERENCE_EPS else n0)
         h_eff = math.sqrt(facts.area_mm2 / n)
         h0 = math.sqrt(facts.area_mm2 / n0)
         err = 0.0 if (eps == TRUTH_EPS and n == n0) else \
@@ -579,7 +580,7 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     rows = []
     for cand in candidates(scene, facts, float(tolerance), methods, model):
         knobs = dict(cand["knobs"])
-        pred = predict(cand["method"], {**knobs, "_sources": cand.get("_sources")}, facts, scene.material,
+        pred = predict(cand["method"], knobs, facts, scene.material, sources=cand.get("_sources"),
                        decimate=cand["decimate"], model=model)
         key = _key(cand["method"], knobs, cand["decimate"])
         source = "model"
@@ -596,8 +597,8 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     else:
         best = {"method": "reference", "knobs": {}, "decimate": None, "rules": {}, "total_s": math.nan,
                 "error": 0.0, "setup_s": math.nan, "frame_s": math.nan}
-    reasons = _reasons(best, rows, facts, float(tolerance), frames, bool(ok))
-    modelled, skipped = _terms(best, facts, scene)
+    reasons = _reasons(best, rows, float(tolerance), frames, bool(ok))
+    modelled, skipped = _terms(best, scene)
     return Plan(method=best["method"], knobs=dict(best["knobs"]), decimate=best["decimate"], modelled=modelled,
                 skipped=skipped, predicted_error=best["error"], predicted_setup_s=best["setup_s"],
                 predicted_frame_s=best["frame_s"], tolerance=float(tolerance), frames=frames, reasons=reasons,
@@ -620,7 +621,7 @@ def _measured(trade: dict | None) -> dict[str, dict]:
     return out
 
 
-def _reasons(best: dict, rows: list[dict], facts: SceneFacts, tolerance: float, frames: int, found: bool) -> dict:
+def _reasons(best: dict, rows: list[dict], tolerance: float, frames: int, found: bool) -> dict:
     reasons: dict[str, str] = {}
     if not found:
         reasons["method"] = (f"no faster configuration is predicted to meet {tolerance:.2%}: the reference at its "
@@ -640,7 +641,7 @@ def _reasons(best: dict, rows: list[dict], facts: SceneFacts, tolerance: float, 
     return reasons
 
 
-def _terms(best: dict, facts: SceneFacts, scene: Scene) -> tuple[list[str], list[str]]:
+def _terms(best: dict, scene: Scene) -> tuple[list[str], list[str]]:
     m, k = best["method"], best["knobs"]
     modelled = {"reference": ["all-pairs dipole"], "splat": ["splatted dipole (light-view sources)"],
                 "icdf": ["importance-sampled global term"], "hybrid": ["local filter", "importance-sampled global"],
@@ -656,6 +657,5 @@ def _terms(best: dict, facts: SceneFacts, scene: Scene) -> tuple[list[str], list
         skipped.append(f"source detail beyond {k['source_faces']} faces")
     if best.get("decimate"):
         skipped.append(f"mesh detail beyond {best['decimate']} faces")
-    del facts
     return modelled, skipped
 

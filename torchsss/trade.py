@@ -32,7 +32,7 @@ from torchsss.registry import ENVIRONMENT_METHODS, OBJECT_METHODS, render_scene
 from torchsss.scene import Scene
 
 __all__ = ["ATLAS_METHODS", "PeakMemory", "applicable_methods", "image_error", "pareto_front", "plot_trade",
-           "sweep_configs", "trade", "write_trade"]
+           "run_config", "sweep_configs", "trade", "write_trade"]
 
 #: Methods that parametrise the surface with an xatlas atlas (their setup grows with the face count).
 ATLAS_METHODS = frozenset({"lensch", "icdf", "hybrid"})
@@ -191,7 +191,11 @@ def _with_decimation(scene: Scene, knobs: dict) -> tuple[Scene, dict]:
     return scene, knobs
 
 
-def _run(scene: Scene, method: str, knobs: dict, frames: int, dtype: torch.dtype) -> tuple[RenderResult, float]:
+def run_config(scene: Scene, method: str, knobs: dict, frames: int, dtype: torch.dtype) -> tuple[RenderResult, float]:
+    """Build ``method`` with ``knobs`` (``"decimate"``: the scene's decimation), render ``frames`` frames.
+
+    Returns the first frame's result (``stats["total_s"]`` added) and the peak resident memory added (MiB).
+    """
     scene, knobs = _with_decimation(scene, knobs)
     with PeakMemory() as pm:
         t0 = time.perf_counter()
@@ -241,7 +245,7 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
     start = time.perf_counter()
     bar = tqdm(total=len(runs) + 1, desc="trade", unit="run", disable=None if progress else True)
     bar.set_postfix_str("reference (truth)")
-    ref, ref_mib = _run(scene, "reference", {}, 1, dtype)
+    ref, ref_mib = run_config(scene, "reference", {}, 1, dtype)
     bar.update(1)
     reference = {"method": "reference", "knobs": jsonable(ref.stats.get("knobs", {})), "setup_s": ref.stats["setup_s"],
                  "frame_s": ref.stats["frame_median_s"], "total_s": ref.stats["total_s"], "peak_mib": ref_mib,
@@ -250,7 +254,7 @@ def trade(scene: Scene, *, methods: Sequence[str] | None = None, quick: bool = F
     for method, knobs in runs:
         bar.set_postfix_str(f"{method} {knobs}")
         try:
-            out, mib = _run(scene, method, knobs, frames, dtype)
+            out, mib = run_config(scene, method, knobs, frames, dtype)
         except ValueError as err:  # a configuration that refuses to build (e.g. memory caps): recorded, not fatal
             rows.append({"method": method, "knobs": dict(knobs), "refused": str(err)})
             bar.update(1)
