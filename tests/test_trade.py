@@ -73,10 +73,7 @@ def test_peak_memory_sees_an_allocation():
         x = torch.ones(64 * 2**20 // 4)  # 64 MiB, touched
         time.sleep(0.05)  # releases the GIL to the sampler
         del x
-    with PeakMemory(interval=0.001) as live:  # still alive at the end: the closing sample sees it
-        y = torch.ones(64 * 2**20 // 4)
-    assert not pm.available or (pm.peak_mib > 32 and live.peak_mib > 32)
-    del y
+    assert not pm.available or pm.peak_mib > 32
 
 
 def test_trade_small_sweep(tmp_path):
