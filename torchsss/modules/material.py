@@ -188,6 +188,15 @@ class DipoleMaterial(nn.Module):
             distance_scale=distance_scale, irradiance_scale=irradiance_scale,
         )
 
+    def dipole_coefficients(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``(sigma_a, sigma_s_prime, eta)`` in mm^-1, mm^-1 and 1: what a fused integrator needs of the profile.
+
+        A profile that offers this method is the plain dipole of :func:`torchsss.dipole_rd` with these coefficients,
+        so :func:`~torchsss.ops.reference.reference_radiosity` may evaluate it in its fused kernel
+        (:mod:`torchsss.ops.fused`) instead of calling :meth:`forward` on chunks of distances.
+        """
+        return self.sigma_a, self.sigma_s_prime, self.eta
+
     def total_diffuse_reflectance(self) -> Tensor:
         """Closed-form albedo :math:`R_{total}` per channel."""
         return total_diffuse_reflectance(self.sigma_a, self.sigma_s_prime, self.eta)
