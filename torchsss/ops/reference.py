@@ -15,6 +15,7 @@ from torchsss._checks import (
     check_tensor,
     compute_dtype,
 )
+from torchsss.ops.fused import dipole_pair_sum, use_compiled
 
 __all__ = ["pairwise_distance", "reference_radiosity"]
 
@@ -68,8 +69,12 @@ def reference_radiosity(
 
     This is the brute-force quadrature of :math:`B(x_o) = \\int E(x_i) R_d(|x_i - x_o|) dA(x_i)` that every fast
     method is measured against. Memory stays bounded: at most ``max_pairs`` pairs per batch element are formed
-    at once (receivers and sources are both chunked). Differentiable with respect to the irradiance, the areas,
-    the positions, the modifiers and any parameters ``profile`` closes over.
+    at once (receivers and sources are both chunked). When ``profile`` is the plain dipole (it offers
+    ``dipole_coefficients()``, as :class:`~torchsss.DipoleMaterial` does), there are no ids, nothing is recorded for
+    autograd and compilation pays (:func:`torchsss.ops.fused.use_compiled`), the sum runs in the fused compiled
+    kernel :func:`torchsss.ops.fused.dipole_pair_sum` instead (same values to float rounding; 100-150 Mpairs/s
+    on the 2-core CPU machine in float32 against 7 for this chunked chain). Differentiable with respect to the
+    irradiance, the areas, the positions, the modifiers and any parameters ``profile`` closes over.
 
     Args:
         src_pos: :math:`(B, N, 3)` source positions in mm.
@@ -163,6 +168,19 @@ def reference_radiosity(
 
     b, n, m = dims["B"], dims["N"], dims["M"]
     dtype = torch.promote_types(torch.promote_types(src_pos.dtype, dst_pos.dtype), weight.dtype)
+    if src_ids is None and callable(getattr(type(profile), "dipole_coefficients", None)):
+        # the plain dipole: one fused kernel (torchsss.ops.fused) when compilation pays and nothing is recorded
+        params = profile.dipole_coefficients()
+        fused = torch.promote_types(dtype, params[0].dtype)  # the eager sum's dtype: a float64 profile widens
+        coeffs = [t.to(device=dst_pos.device, dtype=fused) for t in params]
+        scale = None if src_distance_scale is None else src_distance_scale.to(fused)
+        pos = (dst_pos.to(fused), src_pos.to(fused), weight.to(fused))
+        if c == coeffs[0].numel() and use_compiled(
+                "dipole_pair_sum", (dst_pos.device.type, fused, scale is not None), float(b) * m * n,
+                (*pos, *coeffs, *params, *(() if scale is None else (scale,)))):
+            result = dipole_pair_sum(*pos, *coeffs, scale)
+            return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work \
+                else result.to(out_dtype)
     out = []
     m_chunk = max(1, min(m, 4096, max_pairs))
     n_chunk = max(1, min(n, max_pairs // m_chunk))

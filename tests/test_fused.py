@@ -1,0 +1,175 @@
+"""The fused (compiled) kernels of torchsss.ops.fused against their eager references, and when they are used."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch._dynamo.utils import counters
+
+from torchsss import DipoleMaterial
+from torchsss.ops import fused
+from torchsss.ops.fused import COLD_WORK, WARM_WORK, dipole_pair_sum, dipole_pair_sum_eager, use_compiled
+from torchsss.ops.reference import reference_radiosity
+
+
+def _scene(b: int, m: int, n: int, dtype: torch.dtype, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    src = torch.rand(b, n, 3, generator=g, dtype=dtype) * 20.0
+    # receivers partly on the sources (r = 0 pairs) and partly elsewhere
+    k = min(n, m // 2)
+    dst = torch.cat([src[:, :k], torch.rand(b, m - k, 3, generator=g, dtype=dtype) * 20.0], 1)
+    e = torch.rand(b, n, 3, generator=g, dtype=dtype)
+    area = torch.rand(b, n, generator=g, dtype=dtype) * 0.1
+    return src, e, area, dst
+
+
+MATERIALS = {
+    "marble": DipoleMaterial.from_preset("marble"),
+    "ketchup": DipoleMaterial.from_preset("ketchup"),
+    # sigma_a = 0 in one channel (beta = 0), eta < 1 (the other F_dr fit), a per-channel eta
+    "edge": DipoleMaterial([0.0, 0.5, 3.0], [0.2, 1.0, 40.0], [0.8, 1.0, 1.6]),
+}
+
+
+def _eager(monkeypatch, *args, **kwargs):
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    with torch.no_grad():
+        return reference_radiosity(*args, **kwargs)
+
+
+def _compiled(monkeypatch, *args, **kwargs):
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    with torch.no_grad():
+        return reference_radiosity(*args, **kwargs)
+
+
+@pytest.mark.parametrize("name", sorted(MATERIALS))
+def test_compiled_matches_eager_reference_float32(monkeypatch, name):
+    """The fused kernel against the eager integrator through ``dipole_rd`` (an independent formulation)."""
+    mat = MATERIALS[name]
+    src, e, area, dst = _scene(2, 700, 2600, torch.float32)
+    ref = _eager(monkeypatch, src, e, area, dst, mat)
+    out = _compiled(monkeypatch, src, e, area, dst, mat)
+    assert fused._WARM, "the compiled kernel did not run"
+    assert out.shape == ref.shape == (2, 700, 3) and out.dtype == torch.float32
+    assert torch.allclose(out, ref, rtol=2e-5, atol=1e-7 * float(ref.abs().max()))
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_compiled_distance_scale_float64(monkeypatch, channels):
+    """M_d per source (one or three channels) and the irradiance modulation, in float64 to 1e-12."""
+    mat = DipoleMaterial.from_preset("skin1", dtype=torch.float64)
+    src, e, area, dst = _scene(1, 300, 900, torch.float64, seed=1)
+    g = torch.Generator().manual_seed(2)
+    md = 0.5 + torch.rand(1, 900, channels, generator=g, dtype=torch.float64)
+    mi = torch.rand(1, 900, 1, generator=g, dtype=torch.float64)
+    kw = dict(src_distance_scale=md, src_irradiance_scale=mi)
+    ref = _eager(monkeypatch, src, e, area, dst, mat, **kw)
+    out = _compiled(monkeypatch, src, e, area, dst, mat, **kw)
+    assert out.dtype == torch.float64
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=0.0)
+
+
+def test_no_recompile_for_new_sizes_materials_or_lights(monkeypatch):
+    """Once compiled, new sample and receiver counts, new materials and new irradiance reuse the graph."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    src, e, area, dst = _scene(1, 333, 1500, torch.float32, seed=3)
+    with torch.no_grad():
+        reference_radiosity(src, e, area, dst, MATERIALS["marble"])
+        before = counters["stats"]["unique_graphs"]
+        for m, n, mat in ((100, 3000, "ketchup"), (2000, 700, "edge"), (37, 5000, "marble")):
+            s2, e2, a2, d2 = _scene(1, m, n, torch.float32, seed=m)
+            out = reference_radiosity(s2, e2 * 3.0, a2, d2, MATERIALS[mat])
+            assert out.shape == (1, m, 3) and bool(torch.isfinite(out).all())
+    assert counters["stats"]["unique_graphs"] == before
+
+
+def test_blocks_bound_the_work_of_one_call(monkeypatch):
+    """No call sees more than the device's pair budget (inductor stores one (B, C, m, n) block per call)."""
+    seen = []
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    monkeypatch.setattr(fused, "_EAGER_PAIRS", 1 << 12)
+    real = fused._call
+
+    def spy(kernel, variant, dst, src, *rest):
+        seen.append(dst.shape[1] * src.shape[1])
+        return real(kernel, variant, dst, src, *rest)
+
+    monkeypatch.setattr(fused, "_call", spy)
+    src, e, area, dst = _scene(1, 300, 1000, torch.float64)
+    mat = DipoleMaterial.from_preset("marble", dtype=torch.float64)
+    w = e * area[..., None]
+    out = dipole_pair_sum(dst, src, w, mat.sigma_a.detach(), mat.sigma_s_prime.detach(), mat.eta.detach())
+    assert max(seen) <= 1 << 12 and sum(seen) == 300 * 1000
+    whole = dipole_pair_sum_eager(dst, src, w, mat.sigma_a.detach(), mat.sigma_s_prime.detach(), mat.eta.detach())
+    torch.testing.assert_close(out, whole, rtol=1e-12, atol=0.0)
+
+
+def test_policy(monkeypatch):
+    x = torch.zeros(3)
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    assert not use_compiled("k", ("cpu",), COLD_WORK - 1, (x,))  # too small to pay for a cold compile
+    assert use_compiled("k", ("cpu",), COLD_WORK, (x,))
+    fused._WARM.add(("k", "cpu"))
+    assert use_compiled("k", ("cpu",), WARM_WORK, (x,)) and not use_compiled("k", ("cpu",), WARM_WORK - 1, (x,))
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    assert not use_compiled("k", ("cpu",), 1e12, (x,))
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    assert use_compiled("k", ("cpu",), 1, (x,))
+    p = torch.zeros(3, requires_grad=True)
+    assert not use_compiled("k", ("cpu",), 1e12, (x, p))  # autograd records: eager
+    with torch.no_grad():
+        assert use_compiled("k", ("cpu",), 1e12, (x, p))
+    assert not use_compiled("k", ("meta",), 1e12, (x.to("meta"),))
+
+
+def test_gradients_take_the_eager_path(monkeypatch):
+    """With parameters that record, the integrator stays differentiable (the compiled path is inference only)."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    mat = DipoleMaterial.from_preset("marble", dtype=torch.float64)
+    src, e, area, dst = _scene(1, 20, 40, torch.float64)
+    out = reference_radiosity(src, e, area, dst, mat)
+    out.sum().backward()
+    assert mat.raw_sigma_a.grad is not None and bool((mat.raw_sigma_a.grad != 0).all())
+
+
+def test_failed_compile_falls_back_with_one_warning(monkeypatch):
+    """Without a working compiler the result is the eager one, with one RuntimeWarning for the process."""
+    def broken(fn, **kwargs):
+        def run(*args):
+            raise RuntimeError("no C++ compiler")
+        return run
+
+    monkeypatch.setattr(fused, "_COMPILED", {})
+    monkeypatch.setattr(fused, "_BROKEN", {})
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(torch, "compile", broken)
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    src, e, area, dst = _scene(1, 50, 80, torch.float64)
+    mat = DipoleMaterial.from_preset("marble", dtype=torch.float64)
+    w = e * area[..., None]
+    coeffs = (mat.sigma_a.detach(), mat.sigma_s_prime.detach(), mat.eta.detach())
+    with pytest.warns(RuntimeWarning, match="compiling dipole_pair_sum failed"):
+        out = dipole_pair_sum(dst, src, w, *coeffs)
+    torch.testing.assert_close(out, dipole_pair_sum_eager(dst, src, w, *coeffs), rtol=1e-12, atol=0.0)
+    assert "dipole_pair_sum" in fused._BROKEN and not fused._WARM
+
+
+def test_reference_renderer_compiles_once(monkeypatch):
+    """A moving light and a new camera (another resolution) render without a recompile; the image is the eager one."""
+    from torchsss.geometry import Camera, DirectionalLight, PointLight, sphere
+    from torchsss.pipelines.build import build
+
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    r = build("reference", sphere(10.0, 3), "skin1", spacing_mm=1.0)
+    cam = Camera(eye=(0, 0, 60), target=(0, 0, 0), width=24, height=24)
+    first = r.render(DirectionalLight((0, 0, -1), 1.0), cam)
+    before = counters["stats"]["unique_graphs"]
+    moved = r.render(PointLight((30.0, 20.0, 40.0), 3e3), Camera(eye=(20, 0, 50), target=(0, 0, 0), width=31,
+                                                                 height=17))
+    assert counters["stats"]["unique_graphs"] == before
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    eager = r.render(DirectionalLight((0, 0, -1), 1.0), cam)
+    assert moved.radiance.shape == (1, 3, 17, 31) and float(moved.radiance.max()) > 0
+    torch.testing.assert_close(first.radiance, eager.radiance, rtol=1e-4, atol=1e-6 * float(eager.radiance.max()))
