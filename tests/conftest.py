@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+# Compiled kernels (torchsss.ops.fused) stay off unless a test switches them on (tests/test_fused*.py): the "auto"
+# rule compiles once a process has spent enough eager work, which in a test session would depend on test order.
+os.environ.setdefault("TORCHSSS_COMPILE", "0")
 
 _DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA"))]
 

@@ -106,11 +106,14 @@ def test_blocks_bound_the_work_of_one_call(monkeypatch):
 
 
 def test_policy(monkeypatch):
+    """auto: eager until the eager work spent reaches COLD_WORK (ski rental), then compiled above WARM_WORK."""
     x = torch.zeros(3)
     monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
     monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
-    assert not use_compiled("k", ("cpu",), COLD_WORK - 1, (x,))  # too small to pay for a cold compile
-    assert use_compiled("k", ("cpu",), COLD_WORK, (x,))
+    assert not use_compiled("k", ("cpu",), COLD_WORK // 2, (x,))  # a compile would cost more than this call
+    assert not use_compiled("k", ("gpu",), COLD_WORK // 2, (x,))  # another variant keeps its own account
+    assert use_compiled("k", ("cpu",), COLD_WORK // 2, (x,))  # the eager work so far has paid for a compile
     fused._WARM.add(("k", "cpu"))
     assert use_compiled("k", ("cpu",), WARM_WORK, (x,)) and not use_compiled("k", ("cpu",), WARM_WORK - 1, (x,))
     monkeypatch.setenv("TORCHSSS_COMPILE", "0")

@@ -8,9 +8,11 @@ reference the compiled paths are tested against and the fallback where compilati
 When compilation is used (:func:`use_compiled`):
 
 * ``TORCHSSS_COMPILE=0`` (or ``off``/``false``/``no``) never compiles; ``TORCHSSS_COMPILE=1`` always compiles
-  (tests); the default (``auto``) compiles a kernel variant when its first call is big enough for the compile
-  (5-15 s cold on the 2-core CPU machine, once per process) to pay for itself (:data:`COLD_WORK`), and uses an
-  already compiled variant for every call above :data:`WARM_WORK`.
+  (tests); the default (``auto``) compiles a kernel variant once the eager work spent on it in this process
+  reaches about one compile's time (:data:`COLD_WORK`; a compile takes 5-15 s cold on the 2-core CPU machine,
+  1-3 s when inductor's on-disk cache already holds the kernel), and uses an already compiled variant for every
+  call above :data:`WARM_WORK`. The test suite runs with ``TORCHSSS_COMPILE=0`` (``tests/conftest.py``) except
+  where a test switches it on, so results do not depend on test order.
 * Never while autograd records through the inputs (the compiled kernels are inference paths), while tracing or
   exporting, or on devices other than CPU and CUDA.
 * A compile that fails (no C++ compiler, an unsupported platform) warns once and falls back to eager for the rest
@@ -43,8 +45,8 @@ from torchsss.physics.fresnel import dipole_boundary_a
 
 __all__ = ["COLD_WORK", "WARM_WORK", "compile_mode", "dipole_pair_sum", "dipole_pair_sum_eager", "use_compiled"]
 
-#: Work (e.g. source-receiver pairs) above which a not yet compiled variant is compiled (``auto`` mode): at the
-#: eager path's 6-10 Mpairs/s this is 7-11 s of eager work, about one cold compile.
+#: Eager work (e.g. source-receiver pairs) spent on a variant in this process after which it is compiled
+#: (``auto`` mode): at the eager path's 6-10 Mpairs/s this is 7-11 s, about one cold compile.
 COLD_WORK = 1 << 26
 #: Work above which an already compiled variant is used (``auto`` mode); below it the call overhead dominates.
 WARM_WORK = 1 << 14
@@ -58,6 +60,7 @@ _EAGER_PAIRS = 1 << 20
 
 _COMPILED: dict[str, Callable] = {}
 _WARM: set[tuple] = set()
+_EAGER_WORK: dict[tuple, float] = {}
 _BROKEN: dict[str, str] = {}
 
 
@@ -72,18 +75,34 @@ def compile_mode() -> str:
 
 
 def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, ...]) -> bool:
-    """Whether kernel ``name``'s ``variant`` should run compiled for a call of ``work`` units on ``tensors``."""
-    mode = compile_mode()
-    if mode == "off" or name in _BROKEN or is_tracing():
+    """Whether kernel ``name``'s ``variant`` runs compiled for a call of ``work`` units on ``tensors``.
+
+    In ``auto`` mode a variant not yet compiled in this process stays eager until the eager work spent on it
+    (this call's included) reaches :data:`COLD_WORK`, about one compile's time (the ski-rental rule: at most twice
+    the cost of the better choice in hindsight); a compiled variant serves every call of :data:`WARM_WORK` or more.
+    A call answered False is counted as eager work.
+    """
+    if not _eligible(name, tensors):
+        return False
+    if compile_mode() == "on":
+        return True
+    key = (name, *variant)
+    if key in _WARM:
+        return work >= WARM_WORK
+    spent = _EAGER_WORK.get(key, 0.0) + float(work)
+    if spent >= COLD_WORK:
+        return True
+    _EAGER_WORK[key] = spent
+    return False
+
+
+def _eligible(name: str, tensors: tuple[Tensor, ...]) -> bool:
+    """Compilation allowed at all: not switched off, not broken, nothing recorded or traced, a CPU/CUDA device."""
+    if compile_mode() == "off" or name in _BROKEN or is_tracing():
         return False
     if any(t.device.type not in ("cpu", "cuda") for t in tensors):
         return False
-    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return False
-    if mode == "on":
-        return True
-    key = (name, *variant)
-    return work >= (WARM_WORK if key in _WARM else COLD_WORK)
+    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
 
 def _compiled(name: str, eager: Callable) -> Callable:
@@ -140,7 +159,7 @@ def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigm
 
 
 def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
-                    eta: Tensor, distance_scale: Tensor | None = None) -> Tensor:
+                    eta: Tensor, distance_scale: Tensor | None = None, *, compiled: bool | None = None) -> Tensor:
     """:math:`B_{b,m,c} = \\sum_n w_{b,n,c}\\, R_{d,c}(|x_{b,m} - y_{b,n}|\\, M_{d,b,n})`: the dipole pair sum, fused.
 
     The analytic dipole of :func:`torchsss.dipole_rd` (Jensen et al. 2001, with the same bounded-factor form in
@@ -158,6 +177,8 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         sigma_s_prime: :math:`(C,)` reduced scattering in mm^-1.
         eta: scalar, :math:`(1,)` or :math:`(C,)` relative index of refraction.
         distance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` distance multiplier :math:`M_d`.
+        compiled: None: :func:`use_compiled` decides; True: compiled wherever compilation is allowed at all (the
+            caller decided, e.g. from the work of a whole frame); False: eager.
 
     Returns:
         :math:`(B, M, C)` radiosity in the inputs' dtype.
@@ -176,7 +197,9 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
     variant = (dst_pos.device.type, dst_pos.dtype, b, c, None if distance_scale is None else distance_scale.shape[-1])
     if m == 0 or n == 0:
         return weight.new_zeros(b, m, c)
-    if not use_compiled("dipole_pair_sum", variant, float(b) * m * n, tensors):
+    if compiled is None:
+        compiled = use_compiled("dipole_pair_sum", variant, float(b) * m * n, tensors)
+    if not (compiled and _eligible("dipole_pair_sum", tensors)):
         m_step = max(1, min(m, _EAGER_PAIRS // 1024))
         n_step = max(1, _EAGER_PAIRS // m_step)
         return _blocks(dipole_pair_sum_eager, variant, dst_pos, src_pos, weight, args, distance_scale, m_step, n_step)

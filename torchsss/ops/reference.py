@@ -178,7 +178,7 @@ def reference_radiosity(
         if c == coeffs[0].numel() and use_compiled(
                 "dipole_pair_sum", (dst_pos.device.type, fused, scale is not None), float(b) * m * n,
                 (*pos, *coeffs, *params, *(() if scale is None else (scale,)))):
-            result = dipole_pair_sum(*pos, *coeffs, scale)
+            result = dipole_pair_sum(*pos, *coeffs, scale, compiled=True)
             return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work \
                 else result.to(out_dtype)
     out = []
