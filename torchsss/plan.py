@@ -59,6 +59,7 @@ from torchsss.geometry.lensch import (
 )
 from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
+from torchsss.ops.fused import COLD_WORK
 from torchsss.physics.budget import splat_alias_error
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
@@ -102,6 +103,10 @@ MODEL: dict[str, float] = {
     # error = hypot(floor, c * (texel / (1/sigma_tr)_min)^3); without blending: no_blend
     "lensch_t_texel": 6.0e-6, "lensch_f0": 0.6, "lensch_s0": 2.0, "lensch_s_face": 5.0e-4,
     "lensch_s_kernel": 4.8e-6, "lensch_floor": 0.0847, "lensch_texel": 0.108, "lensch_no_blend": 0.15,
+    # the fused dipole pair sum (torchsss.ops.fused, compiled; reference and icdf frames of >= COLD_WORK pairs):
+    # seconds per pair at 1 thread (55-94 Mpairs/s measured in benchmarks/bench_frames.py; 40 here, for load) and
+    # one cold compile (5-15 s measured)
+    "fused_t_pair": 2.5e-8, "fused_compile_s": 12.0,
     # decimation (quadric edge collapse): seconds per input face
     "decimate_s_face": 4.0e-6,
 }
@@ -381,6 +386,19 @@ def detail_faces(facts: SceneFacts) -> int | None:
     return target if target * 2 <= facts.faces else None
 
 
+def _pair_time(pairs: float, eager_t_pair: float, m: dict) -> tuple[float, float]:
+    """(seconds of one frame's ``pairs`` dipole pairs, one-time compile seconds) under the fused kernel's rule.
+
+    The all-pairs dipole sum of the reference and the icdf estimator runs in the compiled kernel of
+    :mod:`torchsss.ops.fused` once a process has spent about one compile's worth of eager work
+    (:data:`~torchsss.ops.fused.COLD_WORK` pairs): a frame of at least that many pairs is costed at the fused rate
+    plus one compile in the setup; a smaller one at the eager rate (conservative when many frames follow).
+    """
+    if pairs >= COLD_WORK:
+        return m["fused_t_pair"] * pairs, m["fused_compile_s"]
+    return eager_t_pair * pairs, 0.0
+
+
 def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: int | None = None,
             model: dict | None = None, sources: int | None = None) -> dict[str, float]:
     """Predicted ``error``, ``setup_s`` and ``frame_s`` of ``method`` with ``knobs`` on a scene (see the module).
@@ -403,9 +421,10 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             m["ref_err_h"] * abs(h_eff - h0) / min(facts.ell_mm) + m["ref_err_alias"] * math.hypot(
                 prof.alias(h_eff), prof.alias(h0)) + m["ref_err_eps"] * (eps - TRUTH_EPS)
         shadow = 0.2 if knobs.get("shadows") == "none" else 1.0
-        frame = m["ref_t_pair"] * px * n + shadow * m["ref_t_src"] * n * lights + m["ref_t_px"] * facts.pixels
-        setup = m["ref_s0"] + m["ref_s_src"] * n + (m["decimate_s_face"] * facts.faces if knobs.get("source_faces")
-                                                    else 0.0)
+        pair_s, compile_s = _pair_time(px * n, m["ref_t_pair"], m)
+        frame = pair_s + shadow * m["ref_t_src"] * n * lights + m["ref_t_px"] * facts.pixels
+        setup = m["ref_s0"] + m["ref_s_src"] * n + compile_s + (m["decimate_s_face"] * facts.faces
+                                                                if knobs.get("source_faces") else 0.0)
         return {"error": err, "setup_s": setup, "frame_s": frame}
     if method == "splat":
         eps, over = float(knobs.get("eps", 0.01)), float(knobs.get("oversample", 2.0))
@@ -429,7 +448,9 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         if method == "icdf":
             err = math.hypot(m["icdf_floor"],
                              m["icdf_a"] * u ** m["icdf_u"] * d ** m["icdf_q_depth"] * (4096.0 / n) ** m["icdf_p"])
-            frame = m["icdf_t_pair"] * px * n + m["icdf_f0"]
+            pair_s, compile_s = _pair_time(px * n, m["icdf_t_pair"], m)
+            frame = pair_s + m["icdf_f0"]
+            setup += compile_s
         else:
             err = math.hypot(m["hybrid_floor"] * u ** m["hybrid_u_floor"],
                              m["hybrid_a"] * u ** m["hybrid_u"] * d ** m["hybrid_q_depth"]
