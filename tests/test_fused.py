@@ -176,3 +176,46 @@ def test_reference_renderer_compiles_once(monkeypatch):
     eager = r.render(DirectionalLight((0, 0, -1), 1.0), cam)
     assert moved.radiance.shape == (1, 3, 17, 31) and float(moved.radiance.max()) > 0
     torch.testing.assert_close(first.radiance, eager.radiance, rtol=1e-4, atol=1e-6 * float(eager.radiance.max()))
+
+
+@pytest.mark.parametrize("split", [False, True], ids=["ids", "chang_split"])
+def test_compiled_ids_and_chang_split(monkeypatch, split):
+    """Object/chart ids and the hybrid's global factor 1 - W_l^b(r M_d) [same], against the eager callable."""
+    from torchsss.modules.chang import ChangLocalProfile
+
+    mat = DipoleMaterial.from_preset("skin1")
+    src, e, area, dst = _scene(1, 400, 1200, torch.float32, seed=5)
+    g = torch.Generator().manual_seed(6)
+    sid, did = torch.randint(0, 3, (1, 1200), generator=g), torch.randint(0, 3, (1, 400), generator=g)
+    md = 0.5 + torch.rand(1, 1200, 1, generator=g)
+    kw = dict(src_distance_scale=md, src_ids=sid, dst_ids=did)
+    if split:
+        lw = ChangLocalProfile(2.0, 1.5, 5.0)
+
+        def plain(r, same):
+            return 1.0 - lw(r) * same.to(r.dtype)
+
+        def tagged(r, same):
+            return plain(r, same)
+
+        tagged.chang_split = (lw.r_p, lw.k, lw.bound)
+        ref = _eager(monkeypatch, src, e, area, dst, mat, id_weight=plain, **kw)
+        out = _compiled(monkeypatch, src, e, area, dst, mat, id_weight=tagged, **kw)
+        # the factor matters: without it the sum differs
+        whole = _eager(monkeypatch, src, e, area, dst, mat, src_distance_scale=md)
+        assert not torch.allclose(ref, whole, rtol=1e-2)
+    else:
+        ref = _eager(monkeypatch, src, e, area, dst, mat, **kw)
+        out = _compiled(monkeypatch, src, e, area, dst, mat, **kw)
+    assert any(k[-1] == split and k[-2] for k in fused._WARM), "the compiled kernel did not run"
+    assert torch.allclose(out, ref, rtol=2e-5, atol=1e-7 * float(ref.abs().max()))
+
+
+def test_auto_stays_compiled_after_the_switch(monkeypatch):
+    """Once the eager work has paid for a compile, every later call of the variant is compiled (even small ones)."""
+    x = torch.zeros(3)
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    calls = [use_compiled("v", ("cpu",), COLD_WORK * 0.4, (x,)) for _ in range(5)]
+    assert calls == [False, False, True, True, True]

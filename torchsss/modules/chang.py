@@ -635,6 +635,10 @@ class HybridTranslucency(nn.Module):
         def id_weight(r: Tensor, same: Tensor) -> Tensor:
             return 1.0 - self.local_weight(r) * same.to(r.dtype)
 
+        # exactly 1 - W_l^b(r) [same]: the fused integrator (torchsss.ops.fused) may evaluate it in its kernel
+        lw = self.local_weight
+        id_weight.chang_split = (lw.r_p, lw.k, lw.bound)
+
         return reference_radiosity(src_pos, src_e, inv.to(src_e.dtype), receivers.to(src_e.dtype), self.material,
                                    src_distance_scale=ds, src_ids=charts[idx], dst_ids=charts[row * w + col],
                                    id_weight=id_weight, max_pairs=g.max_pairs)

@@ -91,6 +91,7 @@ def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, 
         return work >= WARM_WORK
     spent = _EAGER_WORK.get(key, 0.0) + float(work)
     if spent >= COLD_WORK:
+        _WARM.add(key)  # the caller compiles now: later calls of this variant find it warm
         return True
     _EAGER_WORK[key] = spent
     return False
@@ -133,7 +134,8 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
 
 
 def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
-                          eta: Tensor, distance_scale: Tensor | None = None) -> Tensor:
+                          eta: Tensor, distance_scale: Tensor | None = None, src_ids: Tensor | None = None,
+                          dst_ids: Tensor | None = None, split: Tensor | None = None) -> Tensor:
     """The eager form of :func:`dipole_pair_sum` (materialises :math:`(B, C, M, N)`: small inputs only).
 
     Same arguments and result as :func:`dipole_pair_sum`, no validation.
@@ -143,23 +145,37 @@ def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigm
     zeta = (1.0 + 4.0 / 3.0 * dipole_boundary_a(eta)).reshape(-1)[None, :, None, None]  # z_v / z_r
     ss4 = sigma_s_prime[None, :, None, None]
     st4 = st[None, :, None, None]
-    r2 = sum((dst_pos[:, :, None, k] - src_pos[:, None, :, k]) ** 2 for k in range(3))  # (B, M, N) mm^2
+    r2 = sum((dst_pos[:, :, None, k] - src_pos[:, None, :, k]) ** 2 for k in range(3))[:, None]  # (B, 1, M, N)
     scale = st4 * st4
     if distance_scale is not None:                               # M_d of the source: rho = r M_d sigma_t'
         md = distance_scale.transpose(1, 2)[:, :, None, :]       # (B, 1|C, 1, N)
-        scale = scale * md * md
-    rho2 = r2[:, None] * scale                                   # (B, C, M, N), in units of z_r
+        r2 = r2 * (md * md)
+    rho2 = r2 * scale                                            # (B, C, M, N), in units of z_r
 
     def source(dist: Tensor) -> Tensor:                          # sigma_s' sigma_t' (1/D + beta) e^{-beta D} / D^2
         inv = torch.reciprocal(dist)
         return (ss4 * inv) * (st4 * inv) * (inv + beta) * torch.exp(-beta * dist)
 
     rd = (source(torch.sqrt(rho2 + 1.0)) + zeta * source(torch.sqrt(rho2 + zeta * zeta))) * (0.25 / math.pi)
+    if src_ids is not None:
+        same = (dst_ids[:, None, :, None] == src_ids[:, None, None, :]).to(rd.dtype)  # (B, 1, M, N)
+        if split is None:
+            rd = rd * same
+        else:  # Chang's global part: 1 - W_l^b(r M_d) where the pair shares a chart (chang_weights' corrected sign)
+            r = torch.sqrt(r2)
+            x = (r - split[0]) * split[1]
+            inside = x <= 0
+            w_l = torch.where(inside, 1.0 - 0.5 * torch.exp(torch.clamp(x, max=0.0)),
+                              0.5 * torch.exp(-torch.clamp(x, min=0.0)))
+            w_l = torch.where(r <= split[2], w_l, torch.zeros_like(w_l))
+            rd = rd * (1.0 - w_l * same)
     return (rd * weight.transpose(1, 2)[:, :, None, :]).sum(-1).transpose(1, 2)
 
 
 def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
-                    eta: Tensor, distance_scale: Tensor | None = None, *, compiled: bool | None = None) -> Tensor:
+                    eta: Tensor, distance_scale: Tensor | None = None, *, src_ids: Tensor | None = None,
+                    dst_ids: Tensor | None = None, split: tuple[float, float, float] | None = None,
+                    compiled: bool | None = None) -> Tensor:
     """:math:`B_{b,m,c} = \\sum_n w_{b,n,c}\\, R_{d,c}(|x_{b,m} - y_{b,n}|\\, M_{d,b,n})`: the dipole pair sum, fused.
 
     The analytic dipole of :func:`torchsss.dipole_rd` (Jensen et al. 2001, with the same bounded-factor form in
@@ -177,6 +193,12 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         sigma_s_prime: :math:`(C,)` reduced scattering in mm^-1.
         eta: scalar, :math:`(1,)` or :math:`(C,)` relative index of refraction.
         distance_scale: optional :math:`(B, N, 1)` or :math:`(B, N, C)` distance multiplier :math:`M_d`.
+        src_ids: optional :math:`(B, N)` integer ids (objects or atlas charts) of the sources; with ``dst_ids``
+            :math:`(B, M)`, a pair whose ids differ does not interact.
+        dst_ids: the receivers' ids, with ``src_ids``.
+        split: optional ``(r_p, k, bound)`` of Chang's split (:class:`~torchsss.modules.chang.ChangLocalProfile`):
+            with ids, a pair's kernel is :math:`R_d (1 - W_l^b(r M_d)\\,[\\xi_i = \\xi_o])` (the hybrid's global
+            part: sources in another chart stay whole) instead of :math:`R_d [\\xi_i = \\xi_o]`.
         compiled: None: :func:`use_compiled` decides; True: compiled wherever compilation is allowed at all (the
             caller decided, e.g. from the work of a whole frame); False: eager.
 
@@ -193,29 +215,40 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
     n, c = weight.shape[1:]
     eta = eta.reshape(-1).expand(c).contiguous()  # one rank and stride for every caller (else another graph)
     args = (sigma_a, sigma_s_prime, eta)
+    if (src_ids is None) != (dst_ids is None) or (split is not None and src_ids is None):
+        raise ValueError("src_ids, dst_ids, split: expected both ids or neither, and ids with split")
+    window = None if split is None else torch.tensor([float(v) for v in split], dtype=weight.dtype,
+                                                     device=weight.device)
     tensors = tuple(t for t in (dst_pos, src_pos, weight, *args, distance_scale) if t is not None)
-    variant = (dst_pos.device.type, dst_pos.dtype, b, c, None if distance_scale is None else distance_scale.shape[-1])
+    variant = (dst_pos.device.type, dst_pos.dtype, b, c, None if distance_scale is None else distance_scale.shape[-1],
+               src_ids is not None, split is not None)
     if m == 0 or n == 0:
         return weight.new_zeros(b, m, c)
     if compiled is None:
         compiled = use_compiled("dipole_pair_sum", variant, float(b) * m * n, tensors)
+    extra = (distance_scale, src_ids, dst_ids, window)
     if not (compiled and _eligible("dipole_pair_sum", tensors)):
         m_step = max(1, min(m, _EAGER_PAIRS // 1024))
         n_step = max(1, _EAGER_PAIRS // m_step)
-        return _blocks(dipole_pair_sum_eager, variant, dst_pos, src_pos, weight, args, distance_scale, m_step, n_step)
+        return _blocks(dipole_pair_sum_eager, variant, dst_pos, src_pos, weight, args, extra, m_step, n_step)
     # static blocks: every call has the same shapes (the inputs are padded to whole blocks with zero-weight
     # sources and repeated receivers), so one graph serves every sample and receiver count
     m_step, n_step = _BLOCKS.get(dst_pos.device.type, _BLOCKS["cpu"])
     m_pad, n_pad = -m % m_step, -n % n_step
     if m_pad:
         dst_pos = torch.cat([dst_pos, dst_pos[:, :1].expand(b, m_pad, 3)], 1)
+        if dst_ids is not None:
+            dst_ids = torch.cat([dst_ids, dst_ids[:, :1].expand(b, m_pad)], 1)
     if n_pad:
         src_pos = torch.cat([src_pos, src_pos[:, :1].expand(b, n_pad, 3)], 1)
         weight = torch.cat([weight, weight.new_zeros(b, n_pad, c)], 1)
         if distance_scale is not None:
             distance_scale = torch.cat([distance_scale, distance_scale.new_ones(b, n_pad, distance_scale.shape[-1])], 1)
+        if src_ids is not None:
+            src_ids = torch.cat([src_ids, src_ids[:, :1].expand(b, n_pad)], 1)
     kernel = _compiled("dipole_pair_sum", dipole_pair_sum_eager)
-    out = _blocks(kernel, variant, dst_pos, src_pos, weight, args, distance_scale, m_step, n_step)
+    out = _blocks(kernel, variant, dst_pos, src_pos, weight, args, (distance_scale, src_ids, dst_ids, window),
+                  m_step, n_step)
     return out[:, :m]
 
 
@@ -225,20 +258,28 @@ def _fresh(x: Tensor) -> Tensor:
 
 
 def _blocks(kernel: Callable, variant: tuple, dst_pos: Tensor, src_pos: Tensor, weight: Tensor,
-            args: tuple[Tensor, ...], distance_scale: Tensor | None, m_step: int, n_step: int) -> Tensor:
-    """``kernel`` over blocks of ``m_step`` receivers x ``n_step`` sources, summed over the source blocks."""
+            args: tuple[Tensor, ...], extra: tuple[Tensor | None, ...], m_step: int, n_step: int) -> Tensor:
+    """``kernel`` over blocks of ``m_step`` receivers x ``n_step`` sources, summed over the source blocks.
+
+    ``extra`` is ``(distance_scale, src_ids, dst_ids, split)``: per-source, per-source, per-receiver, whole.
+    """
     m, n = dst_pos.shape[1], src_pos.shape[1]
+    distance_scale, src_ids, dst_ids, split = extra
     blocks = []
     args = tuple(_fresh(a) for a in args)
+    split = None if split is None else _fresh(split)
     for m0 in range(0, m, m_step):
         acc = None
         # fresh blocks with the standard strides (a sliced size-1 batch keeps its parent's stride through
         # .contiguous() and .clone()): the compiled graph guards on strides
         dst = _fresh(dst_pos[:, m0:m0 + m_step])
+        did = None if dst_ids is None else _fresh(dst_ids[:, m0:m0 + m_step])
         for n0 in range(0, n, n_step):
             sl = slice(n0, n0 + n_step)
             ds = None if distance_scale is None else _fresh(distance_scale[:, sl])
-            part = _call(kernel, variant, dst, _fresh(src_pos[:, sl]), _fresh(weight[:, sl]), *args, ds)
+            sid = None if src_ids is None else _fresh(src_ids[:, sl])
+            part = _call(kernel, variant, dst, _fresh(src_pos[:, sl]), _fresh(weight[:, sl]), *args, ds, sid, did,
+                         split)
             acc = part if acc is None else acc + part
         blocks.append(acc)
     return torch.cat(blocks, 1)

@@ -92,7 +92,9 @@ def reference_radiosity(
         dst_ids: optional :math:`(B, M)` integer object ids of the receivers.
         id_weight: optional ``(r, same) -> factor`` that replaces the ids' all-or-nothing rule: the kernel of a
             pair is ``profile(r) * id_weight(r, same)``, ``same`` :math:`(B, m, n, 1)` bool (the ids agree), e.g.
-            the hybrid's global part :math:`1 - W_l(r)\\,[same]` (sources in another chart stay whole).
+            the hybrid's global part :math:`1 - W_l(r)\\,[same]` (sources in another chart stay whole). A callable
+            with the attribute ``chang_split = (r_p, k, bound)`` says it is exactly that factor with Chang's
+            truncated local weight, which the fused kernel then evaluates itself.
         max_pairs: pair budget per chunk (>= 1).
 
     Returns:
@@ -168,7 +170,8 @@ def reference_radiosity(
 
     b, n, m = dims["B"], dims["N"], dims["M"]
     dtype = torch.promote_types(torch.promote_types(src_pos.dtype, dst_pos.dtype), weight.dtype)
-    if src_ids is None and callable(getattr(type(profile), "dipole_coefficients", None)):
+    split = getattr(id_weight, "chang_split", None) if id_weight is not None else None
+    if (id_weight is None or split is not None) and callable(getattr(type(profile), "dipole_coefficients", None)):
         # the plain dipole: one fused kernel (torchsss.ops.fused) when compilation pays and nothing is recorded
         params = profile.dipole_coefficients()
         fused = torch.promote_types(dtype, params[0].dtype)  # the eager sum's dtype: a float64 profile widens
@@ -176,9 +179,11 @@ def reference_radiosity(
         scale = None if src_distance_scale is None else src_distance_scale.to(fused)
         pos = (dst_pos.to(fused), src_pos.to(fused), weight.to(fused))
         if c == coeffs[0].numel() and use_compiled(
-                "dipole_pair_sum", (dst_pos.device.type, fused, scale is not None), float(b) * m * n,
+                "dipole_pair_sum", (dst_pos.device.type, fused, scale is not None, src_ids is not None,
+                                    split is not None), float(b) * m * n,
                 (*pos, *coeffs, *params, *(() if scale is None else (scale,)))):
-            result = dipole_pair_sum(*pos, *coeffs, scale, compiled=True)
+            result = dipole_pair_sum(*pos, *coeffs, scale, src_ids=src_ids, dst_ids=dst_ids, split=split,
+                                     compiled=True)
             return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work \
                 else result.to(out_dtype)
     out = []
