@@ -85,6 +85,12 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def _synced(fn, device: str):
+    out = fn()
+    _sync(device)
+    return out
+
+
 def _timed(fn, device: str):
     _sync(device)
     t0 = time.perf_counter()
@@ -186,11 +192,12 @@ def bench_scene(name: str, path: Path, args, log=print) -> list[dict]:
     return records
 
 
-def bench_reference_pairs(threads: int, m: int, n: int, log=print) -> dict:
+def bench_reference_pairs(threads: int | None, m: int, n: int, log=print, device: str = "cpu") -> dict:
     g = torch.Generator().manual_seed(0)
     dst, src = torch.rand(1, m, 3, generator=g) * 30, torch.rand(1, n, 3, generator=g) * 30
     e, area = torch.rand(1, n, 3, generator=g), torch.full((1, n), 0.05)
-    mat = DipoleMaterial.from_preset("marble")
+    dst, src, e, area = (t.to(device) for t in (dst, src, e, area))
+    mat = DipoleMaterial.from_preset("marble", device=device)
     mat.requires_grad_(False)
     coeffs = tuple(t.detach() for t in mat.dipole_coefficients())
 
@@ -199,20 +206,20 @@ def bench_reference_pairs(threads: int, m: int, n: int, log=print) -> dict:
         os.environ["TORCHSSS_COMPILE"] = "0"
         with torch.inference_mode():
             eager = reference_radiosity(src, e, area, dst, mat)
-            t_eager = time_callable(lambda: reference_radiosity(src, e, area, dst, mat), repeats=3, warmup=0,
-                                    min_time_s=0.0)["median_s"]
+            t_eager = time_callable(lambda: _synced(lambda: reference_radiosity(src, e, area, dst, mat), device),
+                                    repeats=3, warmup=0, min_time_s=0.0)["median_s"]
         os.environ["TORCHSSS_COMPILE"] = "1"
         w = e * area[..., None]
         with torch.inference_mode():
             fused = dipole_pair_sum(dst, src, w, *coeffs)
-            t_fused = time_callable(lambda: dipole_pair_sum(dst, src, w, *coeffs), repeats=5, warmup=1,
-                                    min_time_s=0.2)["median_s"]
+            t_fused = time_callable(lambda: _synced(lambda: dipole_pair_sum(dst, src, w, *coeffs), device),
+                                    repeats=5, warmup=1, min_time_s=0.2)["median_s"]
     finally:
         if old is None:
             os.environ.pop("TORCHSSS_COMPILE", None)
         else:
             os.environ["TORCHSSS_COMPILE"] = old
-    rec = {"benchmark": "reference_pairs", "device": "cpu", "threads": threads, "m": m, "n": n,
+    rec = {"benchmark": "reference_pairs", "device": device, "threads": threads, "m": m, "n": n,
            "eager_mpairs_s": m * n / t_eager / 1e6, "fused_mpairs_s": m * n / t_fused / 1e6,
            "speedup": t_eager / t_fused, "max_rel_diff": float((fused - eager).abs().max() / eager.abs().max())}
     log(f"  reference pairs, {threads} thread(s): eager {rec['eager_mpairs_s']:.1f} Mpairs/s, fused "
@@ -285,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
             records += bench_scene(scene, SCENES[scene], args)
     if not args.skip_ops and args.device == "cpu":
         records += bench_ops(args)
+    elif not args.skip_ops:
+        print("(b) the reference integrator on CUDA")
+        records.append(bench_reference_pairs(None, 16384, 65536, device=args.device))
     merged = []
     for path in args.merge:
         merged += json.loads(path.read_text()).get("records", [])

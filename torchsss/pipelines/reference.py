@@ -45,6 +45,7 @@ from torchsss.modules.material import material_module
 from torchsss.ops.reference import reference_radiosity
 from torchsss.physics.fresnel import check_fresnel, exit_radiance
 from torchsss.physics.materials import Material
+from torchsss.pipelines.coarse import coarse_receivers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_dtype, check_lights, check_objects
 from torchsss.pipelines.specular import specular_radiance
 
@@ -197,6 +198,10 @@ class ReferenceRenderer(Renderer):
             least one sample, so a finely tessellated scan has far more samples than its spacing asks for
             (a 268k-face scan: 268k samples where the spacing needs ~10k). The planner sets it to the
             spacing's face count (:mod:`torchsss.plan`).
+        stride: evaluate :math:`B` at every ``stride``-th pixel in each direction and interpolate it where the
+            surface is smooth, exactly at edges (:mod:`torchsss.pipelines.coarse`); 1 (default): every pixel.
+        refine: with ``stride`` > 1, an interpolated pixel whose four grid corners differ by more than this
+            (relative, any channel) is evaluated exactly too (shadow terminators sharper than the grid).
 
     Examples:
         >>> from torchsss.geometry import Camera, DirectionalLight, sphere
@@ -209,7 +214,7 @@ class ReferenceRenderer(Renderer):
 
     method = "reference"
     defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
-                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None)
+                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=1, refine=0.2)
 
     def _build(self) -> None:
         k = self.knobs
@@ -241,17 +246,24 @@ class ReferenceRenderer(Renderer):
                               fresnel=self.fresnel)
         stats["t_irradiance_s"] = time.perf_counter() - t1
         mask = gbuf.mask[0, 0]
-        receivers = gbuf.position[0].permute(1, 2, 0)[mask]
+        h, w = camera.resolution
+        pos_img = gbuf.position[0].permute(1, 2, 0)
+        plan = coarse_receivers(pos_img, gbuf.normal[0].permute(1, 2, 0), mask, k["stride"])
+        receivers = pos_img.reshape(-1, 3)[plan.evaluate]
         stats["receivers"] = int(receivers.shape[0])
+        stats["interpolated"] = int(plan.fill.numel())
         stats["pairs"] = stats["receivers"] * stats["samples"]
         t2 = time.perf_counter()
         b = reference_radiosity_at(receivers, self.samples, e, self.material, max_pairs=k["max_pairs"],
                                    progress=self.progress)
+        exact = plan.refine(b, k["refine"])  # interpolated pixels whose corners disagree: evaluated exactly
+        b_exact = reference_radiosity_at(pos_img.reshape(-1, 3)[plan.fill[exact]], self.samples, e, self.material,
+                                         max_pairs=k["max_pairs"]) if exact.numel() else None
+        stats["interpolated"] -= int(exact.numel())
+        stats["receivers"] += int(exact.numel())
+        stats["pairs"] = stats["receivers"] * stats["samples"]
         stats["t_integrate_s"] = time.perf_counter() - t2
-        h, w = camera.resolution
-        radiosity = torch.zeros(h, w, 3, dtype=b.dtype, device=receivers.device)
-        radiosity[mask] = b
-        radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
+        radiosity = plan.scatter(b, h, w, exact, b_exact).permute(2, 0, 1).unsqueeze(0)
         cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
         radiance = exit_radiance(radiosity, cos_o, eta, self.fresnel) * gbuf.mask
         if k["specular"]:
@@ -357,7 +369,9 @@ def render_reference_objects(
     stats: dict = {"objects": len(objects)}
     t0 = time.perf_counter()
     meshes = [m.with_dtype(dtype) for m, _ in objects]
-    materials = [material_module(mat, dtype=None if isinstance(mat, nn.Module) else dtype) for _, mat in objects]
+    device = meshes[0].vertices.device
+    materials = [material_module(mat, dtype=None if isinstance(mat, nn.Module) else dtype, device=device)
+                 for _, mat in objects]
     for m in meshes:
         _check_lights(m, lights)
     merged, face_object = merge_meshes(meshes)
