@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
+import weakref
 from collections.abc import Callable
 
 import torch
@@ -43,7 +44,17 @@ from torch import Tensor
 from torchsss._checks import is_tracing
 from torchsss.physics.fresnel import dipole_boundary_a
 
-__all__ = ["COLD_WORK", "WARM_WORK", "compile_mode", "dipole_pair_sum", "dipole_pair_sum_eager", "use_compiled"]
+__all__ = [
+    "COLD_WORK",
+    "WARM_WORK",
+    "compile_mode",
+    "derived",
+    "dipole_pair_sum",
+    "dipole_pair_sum_eager",
+    "dipole_taps",
+    "dipole_taps_eager",
+    "use_compiled",
+]
 
 #: Eager work (e.g. source-receiver pairs) spent on a variant in this process after which it is compiled
 #: (``auto`` mode): at the eager path's 6-10 Mpairs/s this is 7-11 s, about one cold compile.
@@ -55,6 +66,8 @@ WARM_WORK = 1 << 14
 #: squared reduced distances once (both dipole sources read it); 512 x 2048 keeps it in cache on the CPU (55-61
 #: Mpairs/s per core measured; recomputing it instead costs 2.5x). On CUDA, larger calls fill the GPU.
 _BLOCKS = {"cpu": (512, 2048), "cuda": (8192, 8192)}
+#: Pairs per compiled call of :func:`dipole_taps`.
+_TAPS = 1 << 18  # the eager splat paths' chunk (torchsss.ops.splat._EVAL_PAIRS): full chunks need no padding
 #: Pairs per eager block (each holds several (B, C, m, n) temporaries).
 _EAGER_PAIRS = 1 << 20
 
@@ -131,6 +144,80 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
         return kernel.torchsss_eager(*args)
     _WARM.add((name, *variant))
     return out
+
+
+def _dipole_rd(rho2: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor) -> Tensor:
+    """:math:`R_d` from squared reduced distances :math:`\\rho^2 = (r M_d \\sigma_t')^2`, channels first.
+
+    The coefficients broadcast as ``(C, 1)`` columns; the bounded-factor form of :func:`torchsss.dipole_rd`.
+    """
+    st = (sigma_a + sigma_s_prime)[:, None]
+    beta = torch.sqrt(3.0 * sigma_a[:, None] / st)
+    zeta = (1.0 + 4.0 / 3.0 * dipole_boundary_a(eta)).reshape(-1)[:, None]
+    ss = sigma_s_prime[:, None]
+
+    def source(dist: Tensor) -> Tensor:
+        inv = torch.reciprocal(dist)
+        return (ss * inv) * (st * inv) * (inv + beta) * torch.exp(-beta * dist)
+
+    return (source(torch.sqrt(rho2 + 1.0)) + zeta * source(torch.sqrt(rho2 + zeta * zeta))) * (0.25 / math.pi)
+
+
+def dipole_taps_eager(r: Tensor, flux: Tensor, r_max: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor,
+                      distance_scale: Tensor | None = None) -> Tensor:
+    """The eager form of :func:`dipole_taps` (same arguments and result, no validation)."""
+    r_eff = r[None] if distance_scale is None else r[None] * distance_scale     # (1 | C, P)
+    st = (sigma_a + sigma_s_prime)[:, None]
+    rd = _dipole_rd((r_eff * st) ** 2, sigma_a, sigma_s_prime, eta)             # (C, P)
+    return torch.where(r_eff <= r_max, rd * flux, torch.zeros_like(rd))
+
+
+def dipole_taps(r: Tensor, flux: Tensor, r_max: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor,
+                distance_scale: Tensor | None = None, *, compiled: bool | None = None) -> Tensor:
+    """Truncated splat weights :math:`R_d(r M_d)\\,[r M_d \\le r_{max}]\\, E\\,dA` of a list of pairs, fused.
+
+    The per-pair work of Shah's splatting (:func:`~torchsss.ops.splat.splat_radiosity`'s eager window and tile
+    paths) for the plain dipole: one compiled pointwise kernel (:func:`use_compiled` decides) over fixed blocks of
+    :data:`_TAPS` pairs (the last padded), so that no pair count recompiles. Inputs are trusted (validated by the
+    caller).
+
+    Args:
+        r: :math:`(P,)` distances in mm.
+        flux: :math:`(C, P)` the source's :math:`E\\,dA\\,M_i` per pair.
+        r_max: scalar or :math:`(1, 1)` truncation radius in mm (of the scaled distance).
+        sigma_a: :math:`(C,)` absorption in mm^-1.
+        sigma_s_prime: :math:`(C,)` reduced scattering in mm^-1.
+        eta: scalar or :math:`(C,)`.
+        distance_scale: optional :math:`(1 \\text{ or } C, P)` :math:`M_d` per pair.
+        compiled: as :func:`dipole_pair_sum`.
+
+    Returns:
+        :math:`(C, P)` weights.
+    """
+    c, p = flux.shape
+    eta = eta.reshape(-1).expand(c).contiguous()
+    r_max = r_max.reshape(1, 1)
+    tensors = tuple(t for t in (r, flux, r_max, sigma_a, sigma_s_prime, eta, distance_scale) if t is not None)
+    variant = (r.device.type, r.dtype, c, None if distance_scale is None else distance_scale.shape[0])
+    if compiled is None:
+        compiled = use_compiled("dipole_taps", variant, float(p), tensors)
+    if not (compiled and _eligible("dipole_taps", tensors)) or p == 0:
+        return dipole_taps_eager(r, flux, r_max, sigma_a, sigma_s_prime, eta, distance_scale)
+    kernel = _compiled("dipole_taps", dipole_taps_eager)
+    args = tuple(_fresh(t) for t in (r_max, sigma_a, sigma_s_prime, eta))
+    out = []
+    for p0 in range(0, p, _TAPS):
+        n = min(_TAPS, p - p0)
+        pad = _TAPS - n
+
+        def block(x: Tensor, fill: float, n=n, p0=p0, pad=pad) -> Tensor:
+            x = x if (p0, n) == (0, x.shape[-1]) else x[..., p0:p0 + n]
+            return _fresh(torch.cat([x, x.new_full((*x.shape[:-1], pad), fill)], -1) if pad else x)
+
+        ds = None if distance_scale is None else block(distance_scale, 1.0)
+        part = _call(kernel, variant, block(r, 0.0), block(flux, 0.0), *args, ds)
+        out.append(part[:, :n])
+    return torch.cat(out, 1)
 
 
 def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
@@ -253,7 +340,17 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
 
 
 def _fresh(x: Tensor) -> Tensor:
-    """A copy of ``x`` with the standard contiguous strides."""
+    """``x`` with the standard contiguous strides (a copy unless it has them already).
+
+    A compiled graph guards on strides, and a sliced size-1 dimension keeps its parent's stride through
+    ``.contiguous()`` and ``.clone()``.
+    """
+    stride, step = [], 1
+    for size in reversed(x.shape):
+        stride.append(step)
+        step *= size
+    if tuple(reversed(stride)) == tuple(x.stride()):
+        return x
     return torch.empty(x.shape, dtype=x.dtype, device=x.device).copy_(x)
 
 
@@ -283,3 +380,47 @@ def _blocks(kernel: Callable, variant: tuple, dst_pos: Tensor, src_pos: Tensor, 
             acc = part if acc is None else acc + part
         blocks.append(acc)
     return torch.cat(blocks, 1)
+
+
+# -- helpers for kernels called once per frame ---------------------------------------------------------------------
+#: Most tensors :func:`derived` keeps at a time (the oldest is dropped first).
+_DERIVED_MAX = 8
+_DERIVED: dict[tuple, tuple] = {}
+
+
+def _version(t: Tensor) -> int | None:
+    return None if t.is_inference() else t._version
+
+
+def derived(tag: tuple, tensors: tuple[Tensor, ...], compute: Callable[[], object]) -> object:
+    """``compute()``, cached while ``tensors`` are the same objects with the same data (a constant re-layout).
+
+    For data that is constant across frames (Lensch's kernels and throughput values, built once) and that a fast
+    path wants in another layout: the re-layout is computed on the first call and reused while every tensor of
+    ``tensors`` is the same live object at the same address with the same version counter. Inference tensors
+    (made under ``torch.inference_mode``) have no version counter: an in-place change to one of them *inside*
+    inference mode is not seen (outside inference mode torch forbids it). The entry goes when a tensor is freed;
+    at most :data:`_DERIVED_MAX` entries are kept. ``tag`` names the re-layout (and whatever else ``compute``
+    depends on, e.g. a dtype). Not for tensors that autograd records through (the result would be detached from
+    later graphs): callers use it on inference paths only.
+    """
+    key = (tag, *(id(t) for t in tensors))
+    state = tuple((t.data_ptr(), _version(t), t.shape, t.stride(), t.dtype, t.device) for t in tensors)
+    hit = _DERIVED.get(key)
+    if hit is not None:
+        refs, old_state, value = hit
+        if all(r() is t for r, t in zip(refs, tensors)) and old_state == state:
+            return value
+    value = compute()
+
+    def forget(ref, key=key):  # drop the entry of a freed tensor (not a newer entry that reuses its id)
+        entry = _DERIVED.get(key)
+        if entry is not None and any(r is ref for r in entry[0]):
+            del _DERIVED[key]
+
+    refs = tuple(weakref.ref(t, forget) for t in tensors)
+    _DERIVED.pop(key, None)
+    while len(_DERIVED) >= _DERIVED_MAX:
+        _DERIVED.pop(next(iter(_DERIVED)))
+    _DERIVED[key] = (refs, state, value)
+    return value

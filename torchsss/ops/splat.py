@@ -53,6 +53,7 @@ from torchsss._checks import (
     is_tracing,
     skip_value_checks,
 )
+from torchsss.ops.fused import dipole_taps, use_compiled
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
 Profile = Callable[[Tensor], Tensor]
@@ -281,12 +282,25 @@ def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict,
     The pairs are evaluated ``step`` at a time.
     """
     c = out.shape[0]
+    profile, rmax = mat
+    coeffs = None
+    if callable(getattr(type(profile), "dipole_coefficients", None)):  # the plain dipole: the fused kernel may run
+        coeffs = [t.to(device=r.device, dtype=r.dtype) for t in profile.dipole_coefficients()]
+        if coeffs[0].numel() != c:
+            coeffs = None
+    fused = coeffs is not None and use_compiled(
+        "dipole_taps", (r.device.type, r.dtype, c, None if src["md"] is None else src["md"].shape[-1]),
+        float(index.numel()), (r, src["flux"], *coeffs, *profile.dipole_coefficients()))
     for i in range(0, index.numel(), step):
         sl = slice(i, i + step)
         sp = splat[sl]
         md = None if src["md"] is None else src["md"][sp].T
-        rd = _profile(r[sl].unsqueeze(0), None, md, mat[1], mat[0])  # (C, P)
-        out = out.scatter_add(1, index[sl].expand(c, -1), rd * src["flux"][sp].T)
+        flux = src["flux"][sp].T
+        if fused:
+            contrib = dipole_taps(r[sl], flux, rmax.to(r.dtype), *coeffs, md, compiled=True)
+        else:
+            contrib = _profile(r[sl].unsqueeze(0), None, md, rmax, profile) * flux  # (C, P)
+        out = out.scatter_add(1, index[sl].expand(c, -1), contrib)
     return out
 
 
