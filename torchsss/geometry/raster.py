@@ -41,6 +41,7 @@ bounded even for a triangle covering the whole image). Inside candidates are dep
 
 from __future__ import annotations
 
+import functools
 import numbers
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -245,11 +246,17 @@ def _candidate_pass(pf: list[Tensor], sh: int, sw: int, oy: int, ox: int, height
     zbuf.scatter_reduce_(0, pix, key, reduce="amin")
 
 
-def _ceil_log2(n: Tensor, limit: int) -> Tensor:
-    """ceil(log2(n)) for int64 ``0 <= n <= limit`` (0 for n <= 1), through a lookup table."""
+@functools.lru_cache(maxsize=64)
+def _log2_table(limit: int, device: torch.device) -> Tensor:
+    """The table of :func:`_ceil_log2` on ``device``: built on the CPU (float64 everywhere) once per size."""
     lut = torch.zeros(limit + 1, dtype=torch.int64)
     lut[2:] = torch.ceil(torch.log2(torch.arange(2, limit + 1, dtype=torch.float64) - 0.5)).long()
-    return lut.to(n.device).index_select(0, n)
+    return lut.to(device)
+
+
+def _ceil_log2(n: Tensor, limit: int) -> Tensor:
+    """ceil(log2(n)) for int64 ``0 <= n <= limit`` (0 for n <= 1), through a lookup table (cached per device)."""
+    return _log2_table(int(limit), n.device).index_select(0, n)
 
 
 def _setup(clip: Tensor, faces: Tensor, height: int, width: int, cull_backfaces: bool, cdt: torch.dtype,

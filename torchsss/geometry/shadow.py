@@ -129,11 +129,13 @@ def light_camera(
         check_shape(points, "points", "N,3")
         if points.shape[0] == 0 or not bool(torch.isfinite(points).all()):
             raise ValueError(f"points: expected at least one point, all finite, got shape {tuple(points.shape)}")
-        depth_pts = points.detach().to(device="cpu", dtype=torch.float64)
+        # float64 on the points' device (the CPU for MPS, which has no float64): only the extremes come back
+        dev = points.device if points.device.type != "mps" else torch.device("cpu")
+        depth_pts = points.detach().to(device=dev, dtype=torch.float64)
 
     def along(origin: Sequence[float], axis: Sequence[float]) -> Tensor:
-        o = torch.tensor(origin, dtype=torch.float64)
-        return (depth_pts - o) @ torch.tensor(axis, dtype=torch.float64)
+        o = torch.tensor(origin, dtype=torch.float64, device=depth_pts.device)
+        return (depth_pts - o) @ torch.tensor(axis, dtype=torch.float64, device=depth_pts.device)
 
     if isinstance(light, DirectionalLight):
         d = light.direction

@@ -3,6 +3,10 @@
 Not differentiable and not exportable: the reference renderer and the tests use it as ground truth for the
 shadow maps and the rasterizer. Rays start at the surface point pushed off along its geometric normal by
 ``offset_mm`` (towards the light), so a surface never shadows itself.
+
+CPU only by nature (trimesh, embree): the mesh is copied to the CPU once (cached on the mesh); for points on
+another device they go to the CPU and the visibility comes back on every call, the one per-frame round trip of the
+reference renderer on a GPU.
 """
 
 from __future__ import annotations
@@ -18,6 +22,15 @@ from torchsss.geometry.lights import DirectionalLight, Light, PointLight, SpotLi
 from torchsss.geometry.mesh import Mesh
 
 __all__ = ["point_inside", "ray_visibility"]
+
+
+def _ray_mesh(mesh: Mesh):
+    """The mesh as a CPU ``trimesh.Trimesh`` for ray casting, cached on the mesh.
+
+    The ray casts (trimesh, embree) exist only on the CPU: a mesh on another device is copied to the CPU once per
+    mesh rather than once per call, and the intersector's acceleration structure is built once.
+    """
+    return mesh._cached("trimesh", mesh.to_trimesh)
 
 
 def ray_visibility(
@@ -46,7 +59,7 @@ def ray_visibility(
     check_shape(normals, "normals", "N,3", **dims)
     if dims["N"] == 0:
         return points.new_zeros(0)
-    tm = mesh.to_trimesh()
+    tm = _ray_mesh(mesh)
     off = 1e-4 * mesh.size_mm if offset_mm is None else float(offset_mm)
     p = points.detach().double().cpu().numpy()
     n = normals.detach().double().cpu().numpy()
@@ -80,4 +93,4 @@ def point_inside(mesh: Mesh, point: tuple[float, float, float]) -> bool | None:
     """
     if not mesh.is_watertight:
         return None
-    return bool(mesh.to_trimesh().contains(np.asarray([point], dtype=np.float64))[0])
+    return bool(_ray_mesh(mesh).contains(np.asarray([point], dtype=np.float64))[0])

@@ -502,7 +502,8 @@ class HybridTranslucency(nn.Module):
             lookup = lookup * translucency_mask.to(dtype)
         self.register_buffer("lookup_mask", lookup)
         # radial quadrature grid and the pattern (build material, no gradient)
-        t = torch.linspace(0.0, 1.0, grid + 1, dtype=torch.float64)
+        dev = position.device  # the buffers live with the atlas (the material is there too)
+        t = torch.linspace(0.0, 1.0, grid + 1, dtype=torch.float64, device=dev)
         radii = bound * t * t
         self.register_buffer("radii", radii.to(dtype))
         pieces = rings + 1
@@ -510,27 +511,27 @@ class HybridTranslucency(nn.Module):
             if bound > 0:
                 q = self._interval_mass(radii.to(dtype)).to(torch.float64).mean(-1)  # (grid,)
             else:
-                q = torch.zeros(grid, dtype=torch.float64)
+                q = torch.zeros(grid, dtype=torch.float64, device=dev)
             cum = torch.cat([q.new_zeros(1), torch.cumsum(q, 0)])
             total = float(cum[-1])
             if total > 0:
                 mid = 0.5 * (cum[:-1] + cum[1:]) / total
                 piece = (mid * pieces).floor().clamp(0, pieces - 1).long()
-                targets = (torch.arange(1, rings + 1, dtype=torch.float64) + 0.5) / pieces * total
+                targets = (torch.arange(1, rings + 1, dtype=torch.float64, device=dev) + 0.5) / pieces * total
                 j = torch.searchsorted(cum, targets).clamp(1, grid)
                 frac = (targets - cum[j - 1]) / (cum[j] - cum[j - 1]).clamp_min(1e-300)
                 ring_r = radii[j - 1] + frac * (radii[j] - radii[j - 1])
             else:
-                piece = torch.zeros(grid, dtype=torch.long)
-                ring_r = torch.zeros(rings, dtype=torch.float64)
+                piece = torch.zeros(grid, dtype=torch.long, device=dev)
+                ring_r = torch.zeros(rings, dtype=torch.float64, device=dev)
         member = F.one_hot(piece, pieces).to(torch.float64).T  # (pieces, grid)
         self.register_buffer("membership", member.to(dtype))
         # pattern points (P, 2) in mm in the tangent frame, and their share of each piece (P, pieces)
-        pts = [torch.zeros(1, 2, dtype=torch.float64)]
-        share = torch.zeros(1 + rings * per_ring, pieces, dtype=torch.float64)
+        pts = [torch.zeros(1, 2, dtype=torch.float64, device=dev)]
+        share = torch.zeros(1 + rings * per_ring, pieces, dtype=torch.float64, device=dev)
         share[0, 0] = 1.0
         for li in range(rings):
-            ang = 2.0 * math.pi * (torch.arange(per_ring, dtype=torch.float64) + 0.5 * (li % 2)) / per_ring
+            ang = 2.0 * math.pi * (torch.arange(per_ring, dtype=torch.float64, device=dev) + 0.5 * (li % 2)) / per_ring
             pts.append(ring_r[li] * torch.stack([torch.cos(ang), torch.sin(ang)], -1))
             share[1 + li * per_ring: 1 + (li + 1) * per_ring, li + 1] = 1.0 / per_ring
         self.register_buffer("pattern", torch.cat(pts).to(dtype))

@@ -149,7 +149,7 @@ def splat_alias_error(spacing, sigma_a, sigma_s_prime, eta=1.3, shells: int = 4)
     check_positive(h, "spacing")
     sigma_a, sigma_s_prime, eta = _material_like(sigma_a, sigma_s_prime, eta, h)
     terms = dipole_terms(sigma_a, sigma_s_prime, eta)
-    rng = torch.arange(-shells, shells + 1, dtype=torch.float64)
+    rng = torch.arange(-shells, shells + 1, dtype=torch.float64, device=h.device)
     mx, my = torch.meshgrid(rng, rng, indexing="ij")
     norms = torch.sqrt(mx * mx + my * my).flatten()
     norms = norms[norms > 0].to(terms.z_r.dtype)
@@ -284,12 +284,12 @@ def chang_rp(sigma_a, sigma_s_prime, eta=1.3, c: float = 0.01, grid: int = 4096)
         if not bool(grow.any()):
             break
         hi = torch.where(grow, 2.0 * hi, hi)
-    t = torch.linspace(0.0, 1.0, grid, dtype=torch.float64)
+    t = torch.linspace(0.0, 1.0, grid, dtype=torch.float64, device=hi.device)
     lo_r = terms.z_r * 1e-6
     rs = lo_r.unsqueeze(-1) * (hi / lo_r).unsqueeze(-1) ** t  # (..., grid)
     vals = importance(rs)
     above = vals >= c
-    idx = torch.arange(grid).expand_as(above)
+    idx = torch.arange(grid, device=above.device).expand_as(above)
     last = torch.where(above, idx, torch.full_like(idx, -1)).amax(-1)
     found = last >= 0
     i0 = last.clamp(0, grid - 2).unsqueeze(-1)

@@ -179,7 +179,8 @@ def caustic_light_camera(refractor: Mesh, receiver: Mesh, light: DirectionalLigh
     centre, radius = bounding_sphere(refractor)
     if not radius > 0:
         raise ValueError(f"refractor: expected a mesh of non-zero extent, got bounding radius {radius}")
-    points = torch.cat([refractor.vertices.detach().double().cpu(), receiver.vertices.detach().double().cpu()])
+    points = torch.cat([refractor.vertices.detach().double(), receiver.vertices.detach().to(refractor.vertices.device,
+                                                                                         torch.float64)])
     return light_camera(light, centre, radius, resolution, margin=margin, points=points,
                         max_half_angle_deg=_MAX_HALF_ANGLE_DEG, near_fraction=0.5)
 

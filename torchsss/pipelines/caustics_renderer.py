@@ -46,9 +46,10 @@ class CausticsRenderer(Renderer):
         k = self.knobs
         size = float(k["receiver_size_mm"])
         receiver = plane(size, size, 1, dtype=self.dtype)
-        self.receiver = dataclasses.replace(receiver, vertices=receiver.vertices + receiver.vertices.new_tensor(
+        receiver = dataclasses.replace(receiver, vertices=receiver.vertices + receiver.vertices.new_tensor(
             tuple(k["receiver_center"])))
-        self.module = CausticMap(k["ior"], k["absorption"], mode=k["mode"])
+        self.receiver = receiver.with_device(self.device)
+        self.module = CausticMap(k["ior"], k["absorption"], mode=k["mode"]).to(self.device)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k = self.knobs

@@ -118,7 +118,8 @@ def build_icdf(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: 
                levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, progress: bool = False) -> ChangScene:
     """Atlas + :class:`~torchsss.modules.chang.ImportanceSampledTranslucency` for ``mesh`` in ``material``."""
     t0 = time.perf_counter()
-    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
+    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
+                          device=mesh.vertices.device)
     atlas = build_atlas(mesh, atlas_resolution, kernel_size=kernel_size, progress=progress)
     t1 = time.perf_counter()
     module = ImportanceSampledTranslucency.from_atlas(atlas, mat, levels=levels, max_pairs=max_pairs)
@@ -146,7 +147,8 @@ def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution
                                   or not max_reach > 0):
         raise ValueError(f"max_reach: expected a number > 0 or None, got {max_reach!r}")
     t0 = time.perf_counter()
-    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
+    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
+                          device=mesh.vertices.device)
     atlas = build_atlas(mesh, atlas_resolution, kernel_size=kernel_size, progress=progress)
     t1 = time.perf_counter()
     split = {} if hasattr(mat, "sigma_s_prime") else {"r_p": profile_rp(mat, c)}

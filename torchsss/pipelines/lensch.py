@@ -67,7 +67,8 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     (:func:`~torchsss.geometry.lensch.check_entries`; None: no cap).
     """
     stats: dict = {}
-    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype)
+    mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
+                          device=mesh.vertices.device)
     # the throughput's size first, before the atlas: a ValueError that says how far to decimate
     stats["throughput_estimate"] = check_entries(mesh, mat, threshold=threshold, relative=relative,
                                                  max_entries=max_entries)

@@ -132,7 +132,11 @@ class Renderer:
     Attributes:
         method: the method's name (``"reference"``, ``"lensch"``, ...).
         mesh: the object (mm), in the renderer's dtype.
-        material: the profile module (its parameters receive gradients when ``differentiable``).
+        device: the mesh's device, where the material module, the built buffers and every frame's tensors live
+            (setup steps that only exist on the CPU, such as the xatlas atlas, the embree ray casts or the
+            decimation, run on CPU copies and move their results here).
+        material: the profile module (its parameters receive gradients when ``differentiable``), on ``device``
+            (a given module is moved there, as ``nn.Module.to`` does).
         knobs: every knob's value (the defaults completed by what was given), JSON-serialisable.
         setup_s: seconds the constructor took.
     """
@@ -157,8 +161,10 @@ class Renderer:
         self.progress = bool(progress)
         self.knobs = {**self.defaults, **knobs}
         self.mesh = mesh.with_dtype(self.dtype)
+        self.device = self.mesh.vertices.device
         self.material = None if material is None and not self.needs_material else \
-            material_module(material, dtype=None if isinstance(material, nn.Module) else self.dtype)
+            material_module(material, dtype=None if isinstance(material, nn.Module) else self.dtype,
+                            device=self.device)
         self._build()
         self.setup_s = time.perf_counter() - t0
 
@@ -174,6 +180,7 @@ class Renderer:
         self.progress = False
         self.knobs = {**cls.defaults, **knobs}
         self.mesh, self.built, self.atlas, self.module = built.mesh, built, built.atlas, built.module
+        self.device = built.mesh.vertices.device
         self.material = built.module.material
         self.setup_s = float(built.stats.get("t_precompute_s", 0.0))
         return self

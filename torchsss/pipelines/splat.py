@@ -128,7 +128,7 @@ def _vertex_modifier(value: Tensor | None, name: str, mesh: Mesh, dtype: torch.d
         raise ValueError(f"{name}: expected shape ({v},) or ({v}, 3) (one value per vertex), got "
                          f"{tuple(value.shape)}")
     check_finite(value, name)
-    return value.to(dtype).reshape(v, -1)
+    return value.to(device=mesh.vertices.device, dtype=dtype).reshape(v, -1)
 
 
 def _at_sources(attr: Tensor | None, mesh: Mesh, face_id: Tensor, bary: Tensor) -> Tensor | None:
