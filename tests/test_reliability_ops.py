@@ -344,7 +344,8 @@ def test_sv_conv_devices(other):
     for fn in (sv_conv2d, sv_conv2d_reference):
         with pytest.raises(ValueError, match=rf"kernels: expected a tensor on image's device cpu, got one on {other}"):
             fn(img, kern.to(other))
-        with pytest.raises(ValueError, match=rf"kernels: expected a tensor on image's device {other}(:0)?, got one on cpu"):
+        with pytest.raises(ValueError,
+                           match=rf"kernels: expected a tensor on image's device {other}(:0)?, got one on cpu"):
             fn(img.to(other), kern)
 
 

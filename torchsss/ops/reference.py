@@ -14,6 +14,7 @@ from torchsss._checks import (
     check_shape,
     check_tensor,
     compute_dtype,
+    is_tracing,
 )
 from torchsss.ops.fused import dipole_pair_sum, use_compiled
 
@@ -171,7 +172,9 @@ def reference_radiosity(
     b, n, m = dims["B"], dims["N"], dims["M"]
     dtype = torch.promote_types(torch.promote_types(src_pos.dtype, dst_pos.dtype), weight.dtype)
     split = getattr(id_weight, "chang_split", None) if id_weight is not None else None
-    if (id_weight is None or split is not None) and callable(getattr(type(profile), "dipole_coefficients", None)):
+    # (never while tracing: the work estimate below would specialise symbolic sizes)
+    if not is_tracing() and (id_weight is None or split is not None) and \
+            callable(getattr(type(profile), "dipole_coefficients", None)):
         # the plain dipole: one fused kernel (torchsss.ops.fused) when compilation pays and nothing is recorded
         params = profile.dipole_coefficients()
         fused = torch.promote_types(dtype, params[0].dtype)  # the eager sum's dtype: a float64 profile widens
