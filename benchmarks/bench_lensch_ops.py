@@ -1,22 +1,28 @@
 """Lensch ops benchmarks: spatially varying convolution (local response) and sparse F^T x (global response).
 
-(a) ``sv_conv2d`` (fast path) against ``sv_conv2d_reference`` (unfold + einsum), interleaved ``compare``, for
+(a) ``sv_conv2d`` against ``sv_conv2d_reference`` (unfold + einsum), interleaved ``compare``, for
     k in {5, 7, 9, 11} at 256^2, 512^2, 1024^2 (C = 3, B = 1, float32, inference mode), and against the
-    "memory floor": reading the kernels and the image once (``kernels.sum()`` + ``image.sum()``). Also the
-    autograd/export path (``image.requires_grad``, forward only) and the max abs difference to the reference.
+    "memory floor": reading the kernels and the image once (``kernels.sum()`` + ``image.sum()``). Two inference
+    paths: the eager banded path (``fast``, ``TORCHSSS_COMPILE=0``) and the compiled fused path (``compiled``,
+    ``TORCHSSS_COMPILE=1``; the kernels are the same tensor every frame, so their plane layout is built once,
+    and the compile is done before timing: ``compile_s`` is the first call). Also the autograd/export path
+    (``image.requires_grad``, forward only) and the max abs differences to the reference.
 (b) ``sparse_apply_t`` with ``method="csr"`` and ``method="scatter"`` against scipy.sparse CSR (F^T @ x) on
     the same matrix: N = 10,000 points in a 3-D box, F_ij for pairs closer than a radius chosen for ~2e6
-    nonzeros, C = 3, float32, shared values.
+    nonzeros, C = 3, float32, shared values. ``csr`` reuses the CSR matrix built on the first call (same values
+    tensor every frame); ``csr_first`` is the call that builds it (fresh values every call).
 
 Usage::
 
     python benchmarks/bench_lensch_ops.py            # full run, writes benchmarks/results/lensch_ops.{json,md}
+    python benchmarks/bench_lensch_ops.py --threads 2 --name lensch_ops_2threads
     python benchmarks/bench_lensch_ops.py --quick    # smoke run with small sizes (a few seconds)
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -29,8 +35,9 @@ from torchsss.ops import sparse_apply_t, sparse_pattern, sv_conv2d, sv_conv2d_re
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 MD_COLUMNS = {
-    "sv_conv2d": ["size", "k", "channels", "fast_ms", "reference_ms", "speedup_vs_reference", "graph_path_ms",
-                  "floor_ms", "fast_over_floor", "max_abs_diff"],
+    "sv_conv2d": ["size", "k", "channels", "compiled_ms", "fast_ms", "reference_ms", "compiled_vs_reference",
+                  "speedup_vs_reference", "graph_path_ms", "floor_ms", "compiled_over_floor", "fast_over_floor",
+                  "compile_s", "max_abs_diff"],
     "sparse_apply_t": ["method", "n", "nnz", "channels", "torch_ms", "scipy_ms", "speedup_vs_scipy",
                        "max_abs_diff"],
 }
@@ -53,18 +60,30 @@ QUICK = {
 }
 
 
+def _mode(value: str, fn):
+    """``fn`` run with ``TORCHSSS_COMPILE=value`` (set on every call: the calls of a comparison interleave)."""
+    def run():
+        os.environ["TORCHSSS_COMPILE"] = value
+        return fn()
+    return run
+
+
 def bench_sv_conv(sizes, ks, timing: dict, log=print) -> list[dict]:
+    torch._dynamo.config.recompile_limit = 64  # one graph per (size, k): more than dynamo's default of 8
     records = []
     for size in sizes:
         for k in ks:
             image = torch.rand(1, 3, size, size)
             kernels = torch.rand(size, size, k, k) / (k * k)
             with torch.inference_mode():
-                fast = sv_conv2d(image, kernels)
+                fast = _mode("0", lambda image=image, kernels=kernels: sv_conv2d(image, kernels))
+                compiled = _mode("1", lambda image=image, kernels=kernels: sv_conv2d(image, kernels))
+                t0 = time.perf_counter()
+                out_c = compiled()
+                compile_s = time.perf_counter() - t0
                 ref = sv_conv2d_reference(image, kernels)
-                diff = float((fast - ref).abs().max())
-                def fast(image=image, kernels=kernels):
-                    return sv_conv2d(image, kernels)
+                diff = float((fast() - ref).abs().max())
+                diff_c = float((out_c - ref).abs().max())
 
                 def reference(image=image, kernels=kernels):
                     return sv_conv2d_reference(image, kernels)
@@ -73,7 +92,9 @@ def bench_sv_conv(sizes, ks, timing: dict, log=print) -> list[dict]:
                     return kernels.sum(), image.sum()
 
                 c = compare(fast, reference, name=f"sv_conv2d/{size}/{k}", **timing)
+                cc = compare(compiled, reference, name=f"sv_conv2d_compiled/{size}/{k}", **timing)
                 f = compare(fast, floor, name=f"sv_conv2d_floor/{size}/{k}", **timing)
+                fc = compare(compiled, floor, name=f"sv_conv2d_compiled_floor/{size}/{k}", **timing)
             img_g = image.clone().requires_grad_()
             g = time_callable(lambda img_g=img_g, kernels=kernels: sv_conv2d(img_g, kernels), **timing)
             rec = {
@@ -82,21 +103,31 @@ def bench_sv_conv(sizes, ks, timing: dict, log=print) -> list[dict]:
                 "k": k,
                 "channels": 3,
                 "dtype": "float32",
+                "compiled_ms": 1e3 * cc["candidate_median_s"],
                 "fast_ms": 1e3 * c["candidate_median_s"],
                 "reference_ms": 1e3 * c["baseline_median_s"],
+                "compiled_vs_reference": cc["speedup"],
                 "speedup_vs_reference": c["speedup"],
                 "graph_path_ms": 1e3 * g["median_s"],
                 "floor_ms": 1e3 * f["baseline_median_s"],
+                "compiled_over_floor": fc["candidate_median_s"] / fc["baseline_median_s"],
                 "fast_over_floor": f["candidate_median_s"] / f["baseline_median_s"],
-                "max_abs_diff": diff,
+                "compile_s": compile_s,
+                "max_abs_diff": max(diff, diff_c),
+                "compiled_iqr_ms": 1e3 * cc["candidate_iqr_s"],
                 "fast_iqr_ms": 1e3 * c["candidate_iqr_s"],
                 "reference_iqr_ms": 1e3 * c["baseline_iqr_s"],
+                "compiled_reference_ms": 1e3 * cc["baseline_median_s"],
+                "compiled_floor_ms": 1e3 * fc["baseline_median_s"],
                 "repeats": c["repeats"],
             }
-            log(f"  {size:5d}^2 k={k:2d}: fast {rec['fast_ms']:8.2f} ms, reference {rec['reference_ms']:8.2f} ms "
+            log(f"  {size:5d}^2 k={k:2d}: compiled {rec['compiled_ms']:7.2f} ms ({rec['compiled_vs_reference']:.1f}x "
+                f"vs reference, x{rec['compiled_over_floor']:.1f} floor, compile {compile_s:.1f} s), fast "
+                f"{rec['fast_ms']:8.2f} ms, reference {rec['reference_ms']:8.2f} ms "
                 f"({rec['speedup_vs_reference']:.2f}x), graph path {rec['graph_path_ms']:8.2f} ms, floor "
-                f"{rec['floor_ms']:6.2f} ms (x{rec['fast_over_floor']:.1f}), max abs diff {diff:.1e}")
+                f"{rec['floor_ms']:6.2f} ms (x{rec['fast_over_floor']:.1f}), max abs diff {rec['max_abs_diff']:.1e}")
             records.append(rec)
+    os.environ["TORCHSSS_COMPILE"] = "0"
     return records
 
 
@@ -131,12 +162,17 @@ def bench_sparse(n: int, nnz_target: int, timing: dict, log=print) -> list[dict]
     want = torch.from_numpy(np.asarray(ft @ xn))
     log(f"  point cloud: N = {n}, radius {radius:.4f}, nnz = {nnz}")
     records = []
-    for method in ("csr", "scatter"):
+    for method in ("csr", "csr_first", "scatter"):
         with torch.inference_mode():
-            y = sparse_apply_t(x, pat, values, method=method)
-            diff = float((y - want).abs().max())
-            c = compare(lambda method=method: sparse_apply_t(x, pat, values, method=method), lambda: ft @ xn,
-                        name=f"sparse_apply_t/{method}", **timing)
+            m = method.split("_")[0]
+            if method == "csr_first":  # fresh values every call: the CSR matrix is built every call
+                def candidate(m=m):
+                    return sparse_apply_t(x, pat, values.clone(), method=m)
+            else:
+                def candidate(m=m):
+                    return sparse_apply_t(x, pat, values, method=m)
+            diff = float((candidate() - want).abs().max())
+            c = compare(candidate, lambda: ft @ xn, name=f"sparse_apply_t/{method}", **timing)
         rec = {
             "benchmark": "sparse_apply_t",
             "method": method,
@@ -152,7 +188,7 @@ def bench_sparse(n: int, nnz_target: int, timing: dict, log=print) -> list[dict]
             "scipy_iqr_ms": 1e3 * c["baseline_iqr_s"],
             "repeats": c["repeats"],
         }
-        log(f"  {method:7s}: torch {rec['torch_ms']:7.2f} ms, scipy {rec['scipy_ms']:7.2f} ms "
+        log(f"  {method:9s}: torch {rec['torch_ms']:7.2f} ms, scipy {rec['scipy_ms']:7.2f} ms "
             f"({rec['speedup_vs_scipy']:.2f}x), max abs diff {diff:.1e}")
         records.append(rec)
     return records

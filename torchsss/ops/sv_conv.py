@@ -4,23 +4,32 @@
 outside the image. This is a *gather*: the kernel stored at texel ``(y, x)`` says how much every neighbour
 sends to ``(y, x)``, so the area of the *source* texel belongs inside the kernel weight (DESIGN.md §2).
 
-:func:`sv_conv2d` is the fast path (pad once, then :math:`k^2` shifted-slice multiply-accumulates; it exports
-to ONNX at opset 18 and runs there exactly); :func:`sv_conv2d_reference` is the readable ``unfold`` + ``einsum``
-formulation it is tested against.
+:func:`sv_conv2d` is the fast path (pad once, then :math:`k^2` shifted-slice multiply-accumulates, compiled
+into one loop over the texels for inference; it exports to ONNX at opset 18 and runs there exactly);
+:func:`sv_conv2d_reference` is the readable ``unfold`` + ``einsum`` formulation it is tested against.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from torchsss._checks import check_devices, compute_dtype, is_tracing
+from torchsss.ops import fused
 
 __all__ = ["sv_conv2d", "sv_conv2d_reference"]
 
 #: Bytes of kernels permuted per band of rows in the inference path (about an L2 cache).
 _BAND_BYTES = 2 << 20
+#: Images per compiled call that share one set of kernel planes: the fused loop reads each plane once for all
+#: of them (more makes the unrolled kernel, and its compile, longer).
+_GROUP = 4
+#: Multiply-adds per unit of :func:`torchsss.ops.fused.use_compiled` work (eager: about 0.75 ns per
+#: multiply-add on one core, a unit is about 0.1 us of eager work).
+_MACS_PER_WORK = 128
 
 
 def _check_inputs(image: object, kernels: object) -> tuple[int, bool]:
@@ -49,17 +58,37 @@ def sv_conv2d(image: Tensor, kernels: Tensor) -> Tensor:
 
     .. math:: out_{b,c,y,x} = \\sum_{i,j} K_{(b,)y,x,i,j}\\, I_{b,c,\\,y+i-k/2,\\,x+j-k/2}
 
-    (zero outside the image). The kernel is shared by the channels. Implementation: the image is padded once
-    by ``k // 2`` and the output accumulates :math:`k^2` products of a kernel plane with a shifted slice of the
-    padded image. The kernels are permuted to planes :math:`(k^2, H, W)` (or :math:`(B, k^2, 1, H, W)`): in one
-    go when autograd records or a graph is traced/exported (out-of-place, exportable), band by band of rows
-    with in-place ``addcmul_`` otherwise (same summation order). Measured on 1 thread (512^2, C = 3, k = 7;
-    ``benchmarks/bench_lensch_ops.py`` and the README section "Lensch ops"): the one-go permuting copy alone
-    takes 62 ms against 19 ms for all the multiply-adds, so the banded path (29 ms) is 3.5x faster than the
-    one-go path (102 ms); reading kernel planes straight from the strided :math:`(H, W, k, k)` layout is 1.4x
-    slower than one copy; stacking a kernel row's :math:`k` slices and reducing is 1.1-1.9x slower;
-    ``unfold`` + ``einsum`` (:func:`sv_conv2d_reference`) is slower still and materialises :math:`k^2`
-    copies of the image. Float16/bfloat16 inputs are computed in float32 and cast back.
+    (zero outside the image). The kernel is shared by the channels. Three implementations, one result:
+
+    * **compiled** (inference, when :func:`torchsss.ops.fused.use_compiled` allows: ``TORCHSSS_COMPILE=1``, or
+      ``auto`` once the frames of one size have spent about one compile's eager time): the kernels are permuted
+      once to planes :math:`(k^2, H, W)` and kept while the same ``kernels`` tensor lives unchanged
+      (:func:`torchsss.ops.fused.derived`; Lensch's kernels are built once per material and reused every
+      frame), the image is padded, and one inductor loop (:func:`sv_conv2d_planes_eager`) computes up to 4
+      images per read of the planes, vectorised along rows and parallel over rows (one parallel region per
+      call, so 2 threads are not slower than 1). Measured at 512^2, C = 3, k = 7, float32
+      (``benchmarks/bench_lensch_ops.py``, interleaved, shared 2-core machine): 5.6 ms on 1 thread (2.3x the
+      memory floor of reading kernels and image once, 33x faster than ``unfold`` + ``einsum``, 6x faster than
+      the eager path), 3.1 ms on 2 threads (2.1x the floor, 39x ``unfold`` + ``einsum``, 8.8x eager). The first
+      call compiles (2-15 s at k = 7, up to a minute at k = 11, once per process, size and thread count) and
+      builds the planes (one permuting copy). Rejected: the gather form reading each texel's :math:`k^2`
+      contiguous weights (``(kern * patches).sum(-1)`` with patches from ``as_strided``: 6x the floor; with
+      ``stack``ed slices inductor materialises the :math:`(B, C, H, W, k^2)` patches: 230x), one plane-sum per
+      channel in the :math:`(B, C, H, W)` loop order (reads the planes C times: 3-4x the floor), the pad fused
+      into the loop (masked loads: 1.7x slower than padding first).
+    * **eager banded** (inference otherwise): the image is padded once by ``k // 2`` and the output accumulates
+      :math:`k^2` products of a kernel plane with a shifted slice of the padded image, the kernels permuted to
+      planes band by band of rows with in-place ``addcmul_``. Measured on 1 thread (512^2, C = 3, k = 7): the
+      one-go permuting copy alone takes 62 ms against 19 ms for all the multiply-adds, so the banded path
+      (29-34 ms) is 3.5x faster than the one-go path (102 ms); reading kernel planes straight from the strided
+      :math:`(H, W, k, k)` layout is 1.4x slower than one copy; stacking a kernel row's :math:`k` slices and
+      reducing is 1.1-1.9x slower; ``unfold`` + ``einsum`` (:func:`sv_conv2d_reference`) is slower still and
+      materialises :math:`k^2` copies of the image. Its many small parallel regions make it slow on 2 threads
+      of a loaded machine.
+    * **functional** (autograd records, or a graph is traced/exported): the same shifted-slice sum out of
+      place, the planes permuted in one go.
+
+    Float16/bfloat16 inputs are computed in float32 and cast back.
 
     Differentiable with respect to ``image`` and ``kernels``; exports to ONNX (dynamo, opset 18) with the image
     size dynamic.
@@ -91,8 +120,63 @@ def sv_conv2d(image: Tensor, kernels: Tensor) -> Tensor:
     x = image.to(dtype)
     kern = kernels.to(dtype)
     needs_graph = is_tracing() or (torch.is_grad_enabled() and (x.requires_grad or kern.requires_grad))
-    out = _sv_conv2d_functional(x, kern, k) if needs_graph else _sv_conv2d_tiled(x, kern, k)
+    if needs_graph:
+        out = _sv_conv2d_functional(x, kern, k)
+    else:
+        out = _sv_conv2d_fused(x, kern, kernels, k)
+        if out is None:
+            out = _sv_conv2d_tiled(x, kern, k)
     return out.to(out_dtype)
+
+
+def sv_conv2d_planes_eager(xp: Tensor, planes: Tensor, threads: int) -> Tensor:
+    """The fused kernel of :func:`sv_conv2d`: padded images x kernel planes, image ``g`` with kernel set ``n``.
+
+    :math:`(N, G, H+2p, W+2p)` padded images and :math:`(N, k^2, H, W)` planes -> :math:`(N, G, H, W)`.
+
+    Written as one unrolled sum of :math:`G k^2` products, which inductor compiles into one loop over the texels
+    that loads each kernel plane value once for the :math:`G` images (vectorised along rows, parallel over rows).
+    ``threads`` (the intra-op thread count) is a compile-time constant: inductor specialises the OpenMP loop on
+    it, so a different thread count gets its own graph.
+    """
+    if threads < 1:  # read by dynamo, so that the graph is guarded (and recompiled) on the thread count
+        raise ValueError(f"threads: expected an int >= 1, got {threads}")
+    g = xp.shape[1]
+    kk, h, w = planes.shape[1:]
+    k = math.isqrt(kk)
+    outs = []
+    for gi in range(g):
+        o = planes[:, 0] * xp[:, gi, 0:h, 0:w]
+        for t in range(1, kk):
+            i, j = divmod(t, k)
+            o = o + planes[:, t] * xp[:, gi, i:i + h, j:j + w]
+        outs.append(o)
+    return torch.stack(outs, 1)
+
+
+def _sv_conv2d_fused(x: Tensor, kern: Tensor, kernels: Tensor, k: int) -> Tensor | None:
+    """The compiled inference path, or None where :func:`torchsss.ops.fused.use_compiled` says no."""
+    b, c, h, w = x.shape
+    batched = kern.dim() == 5
+    n, g = (b, c) if batched else (1, b * c)
+    threads = torch.get_num_threads()
+    variant = (x.device.type, x.dtype, n, g, h, w, k, threads)
+    work = float(n) * g * h * w * k * k / _MACS_PER_WORK  # the frames of a variant add up (ski rental)
+    if x.numel() == 0 or not fused.use_compiled("sv_conv2d", variant, work, (x, kern)):
+        return None
+    # the kernel planes (one permuting copy, 60 ms at 512^2 and k = 7) are kept while `kernels` lives unchanged:
+    # Lensch's kernels are built once and applied to every frame
+    planes = fused.derived(("sv_conv2d.planes", kern.dtype), (kernels,),
+                           lambda: _planes(kern, k).reshape(n, k * k, h, w))
+    p = k // 2
+    xs = x if batched else x.reshape(1, g, h, w)
+    kernel = fused._compiled("sv_conv2d", sv_conv2d_planes_eager)
+    outs = []
+    for g0 in range(0, g, _GROUP):  # F.pad makes each group a fresh contiguous tensor (the graph guards strides)
+        xp = F.pad(xs[:, g0:g0 + _GROUP], (p, p, p, p))
+        outs.append(fused._call(kernel, variant, xp, planes, threads))
+    out = outs[0] if len(outs) == 1 else torch.cat(outs, 1)
+    return out.reshape(b, c, h, w)
 
 
 def _planes(kern: Tensor, k: int) -> Tensor:
