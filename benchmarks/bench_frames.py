@@ -105,8 +105,9 @@ def _planned(scene: Scene, method: str, tolerance: float, frames: int) -> tuple[
     if p.method == method:
         return dict(p.knobs), p.decimate, ""
     mine = [c for c in p.candidates if c.get("method") == method and math.isfinite(c.get("error", math.nan))]
-    if not mine:
-        return {}, None, "no candidate: the method's defaults"
+    if not mine:  # the defaults, on the mesh the planner would give an atlas method
+        dec = plan(scene, 0.5, frames, methods=["icdf"]).decimate if method in ("icdf", "hybrid", "lensch") else None
+        return {}, dec, "no candidate: the method's defaults"
     best = min(mine, key=lambda c: c["error"])
     return (dict(best["knobs"]), best.get("decimate"),
             f"no configuration predicted within {tolerance:.0%}: the most accurate ({best['error']:.2%} predicted)")
@@ -290,6 +291,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"(a) scenes on {args.device}, {torch.get_num_threads()} thread(s), tolerance {args.tolerance:.0%}")
         for scene in names:
             records += bench_scene(scene, SCENES[scene], args)
+            # written after every scene, so that a run cut short keeps what it measured
+            (args.out_dir / f"{name}.partial.json").parent.mkdir(parents=True, exist_ok=True)
+            (args.out_dir / f"{name}.partial.json").write_text(json.dumps(records, indent=1, default=str))
     if not args.skip_ops and args.device == "cpu":
         records += bench_ops(args)
     elif not args.skip_ops:

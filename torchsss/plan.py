@@ -117,6 +117,8 @@ MODEL: dict[str, float] = {
 MARGIN = 1.1
 #: The truth's tolerance (the reference's default ``eps``).
 TRUTH_EPS = 0.01
+#: The longest edge (in pixel footprints) the decimation rule leaves on a mesh the camera sees.
+MAX_EDGE_PX = 3.0
 #: The splat budget tolerances the planner considers.
 SPLAT_EPS = (0.003, 0.01, 0.03)
 #: The reference tolerances the planner considers (the first is the truth).
@@ -378,10 +380,14 @@ def depth(facts: SceneFacts) -> float:
 def detail_faces(facts: SceneFacts) -> int | None:
     """The face count that shows the detail the image and the material can show, or None (keep the mesh).
 
-    Target edge: the larger of the pixel footprint and half the shortest scattering length; faces of an
-    equilateral tessellation of the area at that edge, at least 2000. None when that would not halve the mesh.
+    Target edge: the larger of the pixel footprint and half the shortest scattering length, but at most
+    :data:`MAX_EDGE_PX` pixel footprints (the atlas methods render the decimated mesh: its silhouette and shading
+    must hold at the image's resolution, whatever the material blurs; a 50 mm marble bunny at 256x256 decimated to
+    the 2,000 faces that marble's scattering length allows measured 20-25% error, all at silhouettes and facets);
+    faces of an equilateral tessellation of the area at that edge, at least 2000. None when that would not halve
+    the mesh.
     """
-    edge = max(facts.pixel_mm, 0.5 * min(facts.ell_mm))
+    edge = min(max(facts.pixel_mm, 0.5 * min(facts.ell_mm)), MAX_EDGE_PX * facts.pixel_mm)
     target = max(2000, int(facts.area_mm2 / (math.sqrt(3.0) / 4.0 * edge * edge)))
     return target if target * 2 <= facts.faces else None
 
