@@ -42,6 +42,7 @@ import torch
 from torch import Tensor
 
 from torchsss._checks import is_tracing
+from torchsss.physics.budget import chang_local_weight
 from torchsss.physics.fresnel import dipole_boundary_a
 
 __all__ = [
@@ -146,15 +147,17 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
     return out
 
 
-def _dipole_rd(rho2: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor) -> Tensor:
-    """:math:`R_d` from squared reduced distances :math:`\\rho^2 = (r M_d \\sigma_t')^2`, channels first.
+def _dipole_rd(rho2: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor, view: tuple[int, ...]) -> Tensor:
+    """:math:`R_d` from squared reduced distances :math:`\\rho^2 = (r M_d \\sigma_t')^2`.
 
-    The coefficients broadcast as ``(C, 1)`` columns; the bounded-factor form of :func:`torchsss.dipole_rd`.
+    The :math:`(C,)` coefficients are viewed as ``view`` (e.g. ``(C, 1)`` channels-first columns, or
+    ``(1, C, 1, 1)``) to broadcast with ``rho2``; the bounded-factor form of :func:`torchsss.dipole_rd`:
+    :math:`\\sigma_s' \\sigma_t' (1/D + \\beta) e^{-\\beta D} / D^2` per source.
     """
-    st = (sigma_a + sigma_s_prime)[:, None]
-    beta = torch.sqrt(3.0 * sigma_a[:, None] / st)
-    zeta = (1.0 + 4.0 / 3.0 * dipole_boundary_a(eta)).reshape(-1)[:, None]
-    ss = sigma_s_prime[:, None]
+    st = (sigma_a + sigma_s_prime).reshape(view)
+    beta = torch.sqrt(3.0 * sigma_a.reshape(view) / st)          # sigma_tr z_r
+    zeta = (1.0 + 4.0 / 3.0 * dipole_boundary_a(eta)).reshape(view)  # z_v / z_r
+    ss = sigma_s_prime.reshape(view)
 
     def source(dist: Tensor) -> Tensor:
         inv = torch.reciprocal(dist)
@@ -168,7 +171,7 @@ def dipole_taps_eager(r: Tensor, flux: Tensor, r_max: Tensor, sigma_a: Tensor, s
     """The eager form of :func:`dipole_taps` (same arguments and result, no validation)."""
     r_eff = r[None] if distance_scale is None else r[None] * distance_scale     # (1 | C, P)
     st = (sigma_a + sigma_s_prime)[:, None]
-    rd = _dipole_rd((r_eff * st) ** 2, sigma_a, sigma_s_prime, eta)             # (C, P)
+    rd = _dipole_rd((r_eff * st) ** 2, sigma_a, sigma_s_prime, eta, (-1, 1))    # (C, P)
     return torch.where(r_eff <= r_max, rd * flux, torch.zeros_like(rd))
 
 
@@ -227,34 +230,19 @@ def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigm
 
     Same arguments and result as :func:`dipole_pair_sum`, no validation.
     """
-    st = sigma_a + sigma_s_prime                                 # (C,)
-    beta = torch.sqrt(3.0 * sigma_a / st)[None, :, None, None]   # sigma_tr z_r, (1, C, 1, 1)
-    zeta = (1.0 + 4.0 / 3.0 * dipole_boundary_a(eta)).reshape(-1)[None, :, None, None]  # z_v / z_r
-    ss4 = sigma_s_prime[None, :, None, None]
-    st4 = st[None, :, None, None]
+    st4 = (sigma_a + sigma_s_prime)[None, :, None, None]
     r2 = sum((dst_pos[:, :, None, k] - src_pos[:, None, :, k]) ** 2 for k in range(3))[:, None]  # (B, 1, M, N)
-    scale = st4 * st4
     if distance_scale is not None:                               # M_d of the source: rho = r M_d sigma_t'
         md = distance_scale.transpose(1, 2)[:, :, None, :]       # (B, 1|C, 1, N)
         r2 = r2 * (md * md)
-    rho2 = r2 * scale                                            # (B, C, M, N), in units of z_r
-
-    def source(dist: Tensor) -> Tensor:                          # sigma_s' sigma_t' (1/D + beta) e^{-beta D} / D^2
-        inv = torch.reciprocal(dist)
-        return (ss4 * inv) * (st4 * inv) * (inv + beta) * torch.exp(-beta * dist)
-
-    rd = (source(torch.sqrt(rho2 + 1.0)) + zeta * source(torch.sqrt(rho2 + zeta * zeta))) * (0.25 / math.pi)
+    rd = _dipole_rd(r2 * (st4 * st4), sigma_a, sigma_s_prime, eta, (1, -1, 1, 1))  # (B, C, M, N)
     if src_ids is not None:
         same = (dst_ids[:, None, :, None] == src_ids[:, None, None, :]).to(rd.dtype)  # (B, 1, M, N)
         if split is None:
             rd = rd * same
         else:  # Chang's global part: 1 - W_l^b(r M_d) where the pair shares a chart (chang_weights' corrected sign)
             r = torch.sqrt(r2)
-            x = (r - split[0]) * split[1]
-            inside = x <= 0
-            w_l = torch.where(inside, 1.0 - 0.5 * torch.exp(torch.clamp(x, max=0.0)),
-                              0.5 * torch.exp(-torch.clamp(x, min=0.0)))
-            w_l = torch.where(r <= split[2], w_l, torch.zeros_like(w_l))
+            w_l = torch.where(r <= split[2], chang_local_weight(r, split[0], split[1]), torch.zeros_like(r))
             rd = rd * (1.0 - w_l * same)
     return (rd * weight.transpose(1, 2)[:, :, None, :]).sum(-1).transpose(1, 2)
 

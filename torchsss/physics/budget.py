@@ -20,6 +20,7 @@ from torchsss._checks import as_float_tensor, check_positive, compute_dtype
 from torchsss.physics.dipole import dipole_rd, dipole_spectrum, dipole_terms
 
 __all__ = [
+    "chang_local_weight",
     "chang_rp",
     "chang_weights",
     "profile_tail_fraction",
@@ -329,9 +330,18 @@ def chang_weights(r, r_p, k: float = 1.5) -> tuple[Tensor, Tensor]:
     rp = as_float_tensor(r_p, "r_p", like=r_t)
     if isinstance(k, bool) or not isinstance(k, (int, float)) or not k > 0:
         raise ValueError(f"k: expected a number > 0, got {k!r}")
-    x = (r_t - rp) * k
+    w_l = chang_local_weight(r_t, rp, k)
+    return w_l, 1.0 - w_l
+
+
+def chang_local_weight(r: Tensor, r_p: Tensor | float, k: Tensor | float) -> Tensor:
+    """:math:`W_l(r)` of :func:`chang_weights` without validation (for compiled kernels; tensors or numbers).
+
+    Both branches' exponents are clamped to <= 0 before ``exp`` (double-where), so no branch overflows or
+    passes a NaN gradient.
+    """
+    x = (r - r_p) * k
     inside = x <= 0
     x_in = torch.where(inside, x, torch.zeros_like(x))
     x_out = torch.where(inside, torch.zeros_like(x), x)
-    w_l = torch.where(inside, 1.0 - 0.5 * torch.exp(x_in), 0.5 * torch.exp(-x_out))
-    return w_l, 1.0 - w_l
+    return torch.where(inside, 1.0 - 0.5 * torch.exp(x_in), 0.5 * torch.exp(-x_out))
