@@ -147,6 +147,24 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
     return out
 
 
+def dipole_params(profile: object, dtype: torch.dtype, device: torch.device, channels: int
+                  ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]] | None:
+    """``(coefficients as given, coefficients on device in dtype promoted with theirs)`` of a plain dipole, or None.
+
+    A profile is the plain dipole of :func:`torchsss.dipole_rd` when its class offers ``dipole_coefficients()``
+    (``(sigma_a, sigma_s_prime, eta)``, as :class:`~torchsss.DipoleMaterial` does; a wrapper that forwards attribute
+    lookups, such as a tabulated profile, does not count) and it has ``channels`` channels. The first tuple is for
+    :func:`use_compiled`'s autograd check, the second for the kernels.
+    """
+    if not callable(getattr(type(profile), "dipole_coefficients", None)):
+        return None
+    params = tuple(profile.dipole_coefficients())
+    if params[0].numel() != channels:
+        return None
+    dtype = torch.promote_types(dtype, params[0].dtype)  # as the eager sum: a float64 profile widens
+    return params, tuple(t.to(device=device, dtype=dtype) for t in params)
+
+
 def _dipole_rd(rho2: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor, eta: Tensor, view: tuple[int, ...]) -> Tensor:
     """:math:`R_d` from squared reduced distances :math:`\\rho^2 = (r M_d \\sigma_t')^2`.
 

@@ -16,7 +16,7 @@ from torchsss._checks import (
     compute_dtype,
     is_tracing,
 )
-from torchsss.ops.fused import dipole_pair_sum, use_compiled
+from torchsss.ops.fused import dipole_pair_sum, dipole_params, use_compiled
 
 __all__ = ["pairwise_distance", "reference_radiosity"]
 
@@ -71,8 +71,9 @@ def reference_radiosity(
     This is the brute-force quadrature of :math:`B(x_o) = \\int E(x_i) R_d(|x_i - x_o|) dA(x_i)` that every fast
     method is measured against. Memory stays bounded: at most ``max_pairs`` pairs per batch element are formed
     at once (receivers and sources are both chunked). When ``profile`` is the plain dipole (it offers
-    ``dipole_coefficients()``, as :class:`~torchsss.DipoleMaterial` does), there are no ids, nothing is recorded for
-    autograd and compilation pays (:func:`torchsss.ops.fused.use_compiled`), the sum runs in the fused compiled
+    ``dipole_coefficients()``, as :class:`~torchsss.DipoleMaterial` does), ``id_weight`` is absent or Chang's
+    split (``chang_split``, below), nothing is recorded for autograd and compilation pays
+    (:func:`torchsss.ops.fused.use_compiled`), the sum runs in the fused compiled
     kernel :func:`torchsss.ops.fused.dipole_pair_sum` instead (same values to float rounding; 100-150 Mpairs/s
     on the 2-core CPU machine in float32 against 7 for this chunked chain). Differentiable with respect to the
     irradiance, the areas, the positions, the modifiers and any parameters ``profile`` closes over.
@@ -173,15 +174,15 @@ def reference_radiosity(
     dtype = torch.promote_types(torch.promote_types(src_pos.dtype, dst_pos.dtype), weight.dtype)
     split = getattr(id_weight, "chang_split", None) if id_weight is not None else None
     # (never while tracing: the work estimate below would specialise symbolic sizes)
-    if not is_tracing() and (id_weight is None or split is not None) and \
-            callable(getattr(type(profile), "dipole_coefficients", None)):
+    dipole = None if is_tracing() or not (id_weight is None or split is not None) else \
+        dipole_params(profile, dtype, dst_pos.device, c)
+    if dipole is not None:
         # the plain dipole: one fused kernel (torchsss.ops.fused) when compilation pays and nothing is recorded
-        params = profile.dipole_coefficients()
-        fused = torch.promote_types(dtype, params[0].dtype)  # the eager sum's dtype: a float64 profile widens
-        coeffs = [t.to(device=dst_pos.device, dtype=fused) for t in params]
+        params, coeffs = dipole
+        fused = coeffs[0].dtype
         scale = None if src_distance_scale is None else src_distance_scale.to(fused)
         pos = (dst_pos.to(fused), src_pos.to(fused), weight.to(fused))
-        if c == coeffs[0].numel() and use_compiled(
+        if use_compiled(
                 "dipole_pair_sum", (dst_pos.device.type, fused, scale is not None, src_ids is not None,
                                     split is not None), float(b) * m * n,
                 (*pos, *coeffs, *params, *(() if scale is None else (scale,)))):

@@ -53,7 +53,7 @@ from torchsss._checks import (
     is_tracing,
     skip_value_checks,
 )
-from torchsss.ops.fused import dipole_taps, use_compiled
+from torchsss.ops.fused import dipole_params, dipole_taps, use_compiled
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
 Profile = Callable[[Tensor], Tensor]
@@ -283,14 +283,11 @@ def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict,
     """
     c = out.shape[0]
     profile, rmax = mat
-    coeffs = None
-    if callable(getattr(type(profile), "dipole_coefficients", None)):  # the plain dipole: the fused kernel may run
-        coeffs = [t.to(device=r.device, dtype=r.dtype) for t in profile.dipole_coefficients()]
-        if coeffs[0].numel() != c:
-            coeffs = None
-    fused = coeffs is not None and use_compiled(
+    dipole = dipole_params(profile, r.dtype, r.device, c)  # the plain dipole: the fused kernel may run
+    coeffs = None if dipole is None else dipole[1]
+    fused = dipole is not None and use_compiled(
         "dipole_taps", (r.device.type, r.dtype, c, None if src["md"] is None else src["md"].shape[-1]),
-        float(index.numel()), (r, src["flux"], *coeffs, *profile.dipole_coefficients()))
+        float(index.numel()), (r, src["flux"], *dipole[0], *coeffs))
     for i in range(0, index.numel(), step):
         sl = slice(i, i + step)
         sp = splat[sl]
