@@ -168,17 +168,21 @@ class LocalResponse(nn.Module):
         self_term: ``"disk"`` (default) replaces the centre tap :math:`A_o R_d(0)` by the closed-form integral
             of :math:`R_d` over a disk of the texel's area (needs a dipole material; finite and -> R_total when
             the profile is far narrower than a texel); ``"point"`` keeps Lensch's point sample.
+        copy: copy ``geometry`` and ``correction`` into the buffers (default); ``False`` takes them as they are
+            (no second copy of the :math:`(H, W, k, k)` tensors; the caller must not change them afterwards).
     """
 
     def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
                  distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
-                 mask: Tensor | None = None, self_term: str = "disk"):
+                 mask: Tensor | None = None, self_term: str = "disk", copy: bool = True):
         super().__init__()
         dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k")
+        if not isinstance(copy, bool):
+            raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
         self.kernel_size = int(geometry.kernel_size)
         self.material = material
-        dist = geometry.distance.detach().clone()
-        area = geometry.area.detach().clone()
+        dist = geometry.distance.detach().clone() if copy else geometry.distance.detach()
+        area = geometry.area.detach().clone() if copy else geometry.area.detach()
         if distance_scale is not None:
             check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
             dist = dist * _window_gather(distance_scale.to(dist.dtype), self.kernel_size)
@@ -195,7 +199,9 @@ class LocalResponse(nn.Module):
         self.register_buffer("area", area)
         self.register_buffer("self_scale", self_scale)
         self.register_buffer("self_area", area[:, :, c, c].clone())
-        self.register_buffer("correction", None if correction is None else correction.detach().clone())
+        if correction is not None:
+            correction = correction.detach().clone() if copy else correction.detach()
+        self.register_buffer("correction", correction)
         self._cache = _Cache()
         if irradiance_scale is not None:
             check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])

@@ -96,7 +96,7 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
                               progress=progress)
         direct, correction = bw.weights, bw.kernel_correction
         stats["t_blending_s"] = time.perf_counter() - t2
-    local = LocalResponse(geom, mat, correction=correction)
+    local = LocalResponse(geom, mat, correction=correction, copy=False)  # built here, owned by the module
     glob = GlobalResponse(weights, tp, mat, atlas.valid_mask)
     module = LenschTranslucency(local, glob, direct=direct)
     stats["t_precompute_s"] = time.perf_counter() - t0
