@@ -72,6 +72,22 @@ def test_local_response_is_the_kernel_convolution(small):
         torch.testing.assert_close(out[:, c:c + 1], ref, rtol=1e-10, atol=1e-14)
 
 
+def test_local_response_copy_flag_shares_or_copies_the_build_tensors(small):
+    _, atlas = small
+    geom = local_kernel_geometry(atlas, 5)
+    mat = _material()
+    correction = torch.rand(3, 64, 64, 5, 5, dtype=torch.float64)
+    shared = LocalResponse(geom, mat, correction=correction, copy=False)
+    copied = LocalResponse(geom, mat, correction=correction)
+    assert shared.distance.data_ptr() == geom.distance.data_ptr()
+    assert shared.correction.data_ptr() == correction.data_ptr()
+    assert copied.distance.data_ptr() != geom.distance.data_ptr()
+    assert copied.correction.data_ptr() != correction.data_ptr()
+    torch.testing.assert_close(shared.kernels(), copied.kernels(), rtol=0, atol=0)
+    with pytest.raises(TypeError, match="copy: expected a bool"):
+        LocalResponse(geom, mat, copy="no")
+
+
 def test_global_response_against_dense_sums(small):
     mesh, atlas = small
     mat = _material()
