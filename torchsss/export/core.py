@@ -1,4 +1,4 @@
-"""ONNX export scaffolding: export a module with the dynamo exporter, run it in onnxruntime, compare with eager.
+"""ONNX export core: dynamo export with verified dynamic dimensions, onnxruntime, comparison with eager.
 
 ``onnx``, ``onnxscript`` and ``onnxruntime`` are optional dependencies (the ``export`` extra: ``pip install
 torchsss[export]``); they are imported inside the functions that need them, so importing this module never
@@ -8,27 +8,20 @@ The exporter is ``torch.onnx.export(..., dynamo=True)`` at opset 18 by default (
 why). Two rules follow from how it works:
 
 - every dimension that must vary at run time has to be declared in ``dynamic_shapes`` (with
-  :class:`torch.export.Dim`); a size that is not declared is frozen into the graph, and so is any Python int;
+  :class:`torch.export.Dim`); a size that is not declared is frozen into the graph, and so is any Python int.
+  :func:`export_onnx` reads the written file back and raises :class:`DynamicShapeError` (naming the dimension)
+  when the exporter specialised a declared dimension to a constant;
 - an exported model has to be checked at a size *different* from the one it was exported at, which is why
-  every :class:`ExportCase` carries two sets of inputs.
-
-:data:`EXPORTABLE` lists the modules that are known to export and to match eager PyTorch in onnxruntime.
-
-Examples:
-    >>> sorted(EXPORTABLE)
-    ['lensch', 'material', 'profile']
-    >>> case = export_case("profile")
-    >>> tuple(case.example_args[0].shape), tuple(case.test_args[0].shape)
-    ((4, 48, 1), (3, 101, 1))
+  every registry case (:mod:`torchsss.export.registry`) carries two sets of inputs.
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 import math
 import os
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -37,23 +30,24 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from torchsss.geometry import build_atlas, build_throughput, local_kernel_geometry, sphere, vertex_weights
-from torchsss.modules import DipoleMaterial, DipoleProfile, GlobalResponse, LenschTranslucency, LocalResponse
-from torchsss.physics.materials import preset
-
 __all__ = [
-    "EXPORTABLE",
     "MIN_OPSET",
-    "ExportCase",
+    "DynamicShapeError",
     "compare_with_eager",
-    "export_case",
+    "declared_dynamic_dims",
     "export_onnx",
     "run_onnxruntime",
+    "verify_dynamic_dims",
 ]
 
 #: Lowest opset accepted by :func:`export_onnx`. The dynamo exporter emits opset 18 natively; asking it for
 #: less goes through a version converter that can silently leave the file at 18 (e.g. with ``Pad`` in the graph).
 MIN_OPSET = 18
+
+
+class DynamicShapeError(RuntimeError):
+    """A dimension declared dynamic in ``dynamic_shapes`` is a constant in the exported file."""
+
 
 _EXTRA_HINT = "install the optional dependencies with `pip install torchsss[export]`"
 
@@ -168,6 +162,8 @@ def export_onnx(
             ``dynamic_shapes`` of the wrong length.
         ImportError: ``onnx``/``onnxscript`` are missing (the ``torchsss[export]`` extra).
         RuntimeError: the written file does not carry the requested opset.
+        DynamicShapeError: a dimension declared in ``dynamic_shapes`` was specialised to a constant by the
+            exporter (the file is left on disk for inspection).
     """
     _check_module(module)
     args = _check_tensor_tuple(args, "args")
@@ -197,16 +193,115 @@ def export_onnx(
             path,
             dynamo=True,
             opset_version=opset,
-            dynamic_shapes=dynamic_shapes,
+            dynamic_shapes=_nest_varargs(module, dynamic_shapes),
             input_names=in_names,
             output_names=out_names,
             external_data=False,
+            verbose=False,
         )
     model = onnx.load(str(path), load_external_data=False)
     written = next((o.version for o in model.opset_import if o.domain in ("", "ai.onnx")), None)
     if written != opset:
         raise RuntimeError(f"{path}: expected default-domain opset {opset} in the exported file, got {written}")
+    if dynamic_shapes is not None:
+        verify_dynamic_dims(model, declared_dynamic_dims(module, args, dynamic_shapes, in_names), path)
     return path
+
+
+def _nest_varargs(module: nn.Module, dynamic_shapes: Any) -> Any:
+    """A flat per-argument spec for ``forward(a, *rest)`` as torch.export wants it: ``{a: .., rest: (..)}``."""
+    if not isinstance(dynamic_shapes, (tuple, list)):
+        return dynamic_shapes
+    params = list(inspect.signature(module.forward).parameters.values())
+    if not any(p.kind == p.VAR_POSITIONAL for p in params):
+        return dynamic_shapes
+    named = [p.name for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    var = next(p.name for p in params if p.kind == p.VAR_POSITIONAL)
+    k = len(named)
+    if len(dynamic_shapes) <= k:
+        return dynamic_shapes
+    # keyed by parameter name: the exporter turns a nested tuple spec into a list that no longer matches the args
+    return {**dict(zip(named, dynamic_shapes[:k])), var: tuple(dynamic_shapes[k:])}
+
+
+def _dim_name(dim: object) -> str:
+    """The name of a :class:`torch.export.Dim` (or the repr of a ``Dim.AUTO``/``Dim.DYNAMIC`` hint)."""
+    return str(getattr(dim, "__name__", None) or dim)
+
+
+def declared_dynamic_dims(
+    module: nn.Module, args: tuple[Tensor, ...], dynamic_shapes: dict[str, Any] | tuple[Any, ...] | list[Any],
+    input_names: Sequence[str] | None = None,
+) -> list[tuple[int, str, int, str]]:
+    """The dynamic dimensions declared in ``dynamic_shapes``, one ``(arg index, input name, dim, Dim name)`` each.
+
+    ``dynamic_shapes`` as for :func:`export_onnx`: a tuple/list in argument order or a dict keyed by ``forward``'s
+    parameter names; each entry None, a dict ``{dim: Dim}`` or a tuple/list with one Dim (or None) per dimension.
+    The input names are ``input_names`` or ``forward``'s parameter names (the names the exporter gives the graph
+    inputs).
+
+    Raises:
+        TypeError: an entry of ``dynamic_shapes`` of another type.
+        ValueError: a dict key that is not a parameter of ``forward``.
+    """
+    params = [p.name for p in inspect.signature(module.forward).parameters.values()
+              if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    names = list(input_names) if input_names is not None else (params + [f"input_{i}" for i in range(len(args))])
+    if isinstance(dynamic_shapes, dict):
+        unknown = sorted(set(dynamic_shapes) - set(params[:len(args)]))
+        if unknown:
+            raise ValueError(f"dynamic_shapes: expected keys among forward's parameters {params[:len(args)]}, "
+                             f"got {unknown}")
+        per_arg = [dynamic_shapes.get(p) for p in params[:len(args)]]
+    else:
+        per_arg = list(dynamic_shapes)
+    out = []
+    for i, spec in enumerate(per_arg):
+        if spec is None:
+            continue
+        if isinstance(spec, dict):
+            items = spec.items()
+        elif isinstance(spec, (tuple, list)):
+            items = enumerate(spec)
+        else:
+            raise TypeError(f"dynamic_shapes[{i}]: expected None, a dict or a tuple/list, got {type(spec).__name__}")
+        for d, dim in items:
+            if dim is not None:
+                out.append((i, names[i], int(d) % max(args[i].dim(), 1), _dim_name(dim)))
+    return out
+
+
+def verify_dynamic_dims(model: Any, declared: list[tuple[int, str, int, str]], where: object = "model") -> None:
+    """Check that every declared dynamic dimension is symbolic among the graph inputs of an ONNX ``model``.
+
+    Graph inputs are matched by name (the exporter names them after ``forward``'s parameters or
+    ``input_names``), else by position among the non-initializer inputs.
+
+    Raises:
+        DynamicShapeError: a declared dimension is a constant (or missing) in the file; the message names the
+            Dim, the input, the axis and the constant the exporter put there.
+    """
+    inits = {t.name for t in model.graph.initializer}
+    graph_inputs = [v for v in model.graph.input if v.name not in inits]
+    by_name = {v.name: v for v in graph_inputs}
+    bad = []
+    for i, name, d, dim_name in declared:
+        v = by_name.get(name, graph_inputs[i] if i < len(graph_inputs) else None)
+        if v is None:
+            bad.append(f"{dim_name} (input {name!r}, axis {d}): the input is not in the graph")
+            continue
+        dims = v.type.tensor_type.shape.dim
+        if d >= len(dims):
+            bad.append(f"{dim_name} (input {v.name!r}, axis {d}): the input has rank {len(dims)}")
+        elif not dims[d].dim_param:
+            got = dims[d].dim_value if dims[d].HasField("dim_value") else "unknown"
+            bad.append(f"{dim_name} (input {v.name!r}, axis {d}): specialised to {got}")
+    if bad:
+        raise DynamicShapeError(
+            f"{where}: expected the declared dynamic dimensions to stay symbolic in the exported graph, but the "
+            "exporter froze " + "; ".join(bad) + " (a Python int or a size comparison in forward() specialises "
+            "it: see export/README.md)"
+        )
 
 
 def run_onnxruntime(
@@ -263,6 +358,8 @@ def run_onnxruntime(
 def _flatten_outputs(out: object) -> list[Tensor]:
     if isinstance(out, Tensor):
         return [out]
+    if isinstance(out, dict):  # the exporter flattens a dict output in key order
+        out = list(out.values())
     if isinstance(out, (tuple, list)):
         flat: list[Tensor] = []
         for o in out:
@@ -362,115 +459,3 @@ def compare_with_eager(
     }
 
 
-# -- registry -----------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ExportCase:
-    """A module with inputs at two sizes, ready for :func:`export_onnx` and :func:`compare_with_eager`.
-
-    Attributes:
-        module: the module to export.
-        example_args: inputs at the export size.
-        test_args: inputs at a different size (other dynamic dims), to check that no size was frozen.
-        dynamic_shapes: the ``dynamic_shapes`` spec for :func:`export_onnx` (uses :class:`torch.export.Dim`).
-        description: one line saying what the graph computes, with shapes and units.
-        rtol: the largest elementwise relative difference onnxruntime vs eager that the entry accepts.
-        scale: for outputs that sum terms of both signs, ``scale(*test_args)`` gives the magnitude of the summands
-            per entry; the relative difference is taken against it where the sum cancels.
-    """
-
-    module: nn.Module
-    example_args: tuple[Tensor, ...]
-    test_args: tuple[Tensor, ...]
-    dynamic_shapes: dict[str, Any] | tuple[Any, ...] | None
-    description: str
-    rtol: float = 1e-5
-    #: optional: test inputs -> per-entry magnitude of the summands of each output (see :func:`compare_with_eager`)
-    scale: Callable[..., Tensor] | None = None
-
-
-def _distances(shape: tuple[int, ...], r_max_mm: float) -> Tensor:
-    """Evenly spaced distances 0..r_max_mm (mm, float32, both ends included) reshaped to ``shape``."""
-    return torch.linspace(0.0, r_max_mm, math.prod(shape), dtype=torch.float32).reshape(shape)
-
-
-def _profile_case() -> ExportCase:
-    p = preset("marble")
-    material = (
-        torch.tensor(p.sigma_a, dtype=torch.float32),
-        torch.tensor(p.sigma_s_prime, dtype=torch.float32),
-        torch.tensor([p.eta], dtype=torch.float32),
-    )
-    n, m = torch.export.Dim("N"), torch.export.Dim("M")
-    return ExportCase(
-        module=DipoleProfile(),
-        example_args=(_distances((4, 48, 1), 30.0), *material),
-        test_args=(_distances((3, 101, 1), 30.0), *material),
-        dynamic_shapes=({0: n, 1: m}, None, None, None),
-        description="DipoleProfile: r (N, M, 1) mm, sigma_a/sigma_s_prime (3,) mm^-1, eta (1,) -> R_d (N, M, 3) "
-                    "mm^-2; example material: marble",
-    )
-
-
-def _material_case() -> ExportCase:
-    n = torch.export.Dim("N")
-    return ExportCase(
-        module=DipoleMaterial.from_preset("skin1"),
-        example_args=(_distances((64, 1), 30.0),),
-        test_args=(_distances((257, 1), 30.0),),
-        dynamic_shapes=({0: n},),
-        description="DipoleMaterial('skin1'), parameters folded into the graph: r (N, 1) mm -> R_d (N, 3) mm^-2",
-    )
-
-
-def _lensch_case() -> ExportCase:
-    mesh = sphere(6.0, 2)
-    atlas = build_atlas(mesh, 64, kernel_size=5)
-    sa, ss, eta = preset("skin1").tensors(torch.float32)
-    mat = DipoleMaterial(sa, ss, eta)
-    module = LenschTranslucency(
-        LocalResponse(local_kernel_geometry(atlas, 5), mat),
-        GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, mat), mat, atlas.valid_mask,
-                       method="scatter"),  # the exported graph's summation order, so eager and ORT compare tightly
-    )
-    gen = torch.Generator().manual_seed(0)
-    e1 = torch.rand(1, 3, 64, 64, generator=gen) * atlas.valid_mask
-    e2 = torch.rand(3, 3, 64, 64, generator=gen) * atlas.valid_mask
-    return ExportCase(
-        module=module,
-        example_args=(e1,),
-        test_args=(e2,),
-        dynamic_shapes=({0: torch.export.Dim("B")},),
-        description="LenschTranslucency per frame (skin1, 10k-texel sphere atlas, 5x5 kernels, 162 vertices): "
-                    "irradiance atlas (B, 3, 64, 64) -> radiosity atlas (B, 3, 64, 64)",
-        # float32 sums of 25 kernel taps and ~160 vertex terms, in a different order than eager's in-place
-        # accumulation: measured 1.3e-5 elementwise (2.4e-7 absolute at values up to ~0.1). The dual-basis vertex
-        # irradiance of random texels is signed, so local + global can cancel to ~1e-6 at values of ~0.04: the
-        # difference is taken relative to |local| + |global| (one float32 rounding of a summand is 0.4% of such
-        # a sum).
-        rtol=5e-5,
-        scale=lambda e: module.local(e).abs() + module.global_response(e).abs(),
-    )
-
-
-#: Exportable modules by name; each value builds a fresh :class:`ExportCase`.
-EXPORTABLE: dict[str, Callable[[], ExportCase]] = {
-    "profile": _profile_case,
-    "material": _material_case,
-    "lensch": _lensch_case,
-}
-
-
-def export_case(name: str) -> ExportCase:
-    """Build the :class:`ExportCase` registered under ``name`` in :data:`EXPORTABLE`.
-
-    Raises:
-        TypeError: ``name`` is not a str.
-        ValueError: unknown name; the message lists the valid ones.
-    """
-    if not isinstance(name, str):
-        raise TypeError(f"name: expected a str, got {type(name).__name__}")
-    if name not in EXPORTABLE:
-        raise ValueError(f"name: expected one of {', '.join(sorted(EXPORTABLE))}, got {name!r}")
-    return EXPORTABLE[name]()

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsss.modules.material import check_profile
-from torchsss.ops.splat import splat_radiosity
+from torchsss.ops.splat import _footprint, splat_radiosity
 
 __all__ = ["SplatTranslucency"]
 
@@ -105,3 +105,49 @@ class SplatTranslucency(nn.Module):
                                src_material=src_material, src_object=src_object, dst_object=dst_object,
                                src_distance_scale=src_distance_scale, src_irradiance_scale=src_irradiance_scale,
                                method=self.method, window=self.window)
+
+    def count_truncated(self, src_pos: Tensor, dst_pos: Tensor, view_proj: Tensor, window: int | None = None,
+                        src_material: Tensor | None = None, src_distance_scale: Tensor | None = None,
+                        r_max: Tensor | None = None) -> Tensor:
+        """Number of splats per batch element whose footprint may not fit a fixed ``window`` (exportable).
+
+        A splat's footprint is the conservative pixel bound of its reach :math:`r_{max}/\\min M_d` projected with
+        ``view_proj`` (the bound of :func:`~torchsss.ops.splat.splat_window_size`, perspective growth and one pixel
+        of slack included). A visible splat counts when the odd window side its footprint needs exceeds
+        ``window`` along an axis that the window does not already span. Zero means nothing was truncated; a
+        positive count is an upper bound (the bound is conservative), so a deployed graph can flag a frame whose
+        window is too small instead of losing light silently.
+
+        Args:
+            src_pos: :math:`(B, S, 3)` splat centres, mm.
+            dst_pos: :math:`(B, 3, H, W)` camera-view positions (only the image size is read).
+            view_proj: :math:`(B, 4, 4)` or :math:`(4, 4)` camera view-projection.
+            window: odd window side :math:`K` (default: the module's ``window``).
+            src_material: :math:`(B, S)` integer row of the material table (several materials).
+            src_distance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` distance multiplier :math:`M_d`.
+            r_max: :math:`(M,)` truncation radius per material in mm (default: the module's ``r_max`` buffer).
+
+        Returns:
+            :math:`(B,)` int64 counts.
+
+        Raises:
+            ValueError: no ``window`` (neither given nor the module's).
+        """
+        k = self.window if window is None else window
+        if k is None:
+            raise ValueError("window: expected an odd int (the module has none), got None")
+        b, s = src_pos.shape[0], src_pos.shape[1]
+        h, w = dst_pos.shape[-2], dst_pos.shape[-1]
+        vp = view_proj if view_proj.dim() == 3 else view_proj.unsqueeze(0)
+        dtype = src_pos.dtype
+        rm = (self.r_max if r_max is None else r_max).to(dtype).reshape(-1)
+        reach = rm[0].expand(b, s) if src_material is None else rm[src_material.long()]
+        if src_distance_scale is not None:
+            reach = reach / src_distance_scale.to(dtype).amin(-1)
+        batch = torch.arange(b, device=src_pos.device).repeat_interleave(s)
+        _, half, visible = _footprint(src_pos.reshape(-1, 3), reach.reshape(-1), vp.expand(b, 4, 4)[batch], h, w)
+        need = 2.0 * torch.ceil(half) + 1.0  # (B*S, 2): the odd side each axis needs (inf when unbounded)
+        # image sides as a tensor: a Python comparison of the (symbolic) sizes would freeze them into an export
+        spans = torch.tensor([w, h], device=src_pos.device) <= k  # the window covers the whole axis
+        short = ((need > k) & ~spans).any(-1)
+        return (visible & short).reshape(b, s).sum(1)

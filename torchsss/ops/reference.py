@@ -14,6 +14,7 @@ from torchsss._checks import (
     check_shape,
     check_tensor,
     compute_dtype,
+    is_exporting,
     is_tracing,
 )
 from torchsss.ops.fused import dipole_pair_sum, dipole_params, use_compiled
@@ -97,7 +98,8 @@ def reference_radiosity(
             the hybrid's global part :math:`1 - W_l(r)\\,[same]` (sources in another chart stay whole). A callable
             with the attribute ``chang_split = (r_p, k, bound)`` says it is exactly that factor with Chang's
             truncated local weight, which the fused kernel then evaluates itself.
-        max_pairs: pair budget per chunk (>= 1).
+        max_pairs: pair budget per chunk (>= 1); ignored while exporting (ONNX, ``torch.export``), where all
+            pairs form one block so that N and M stay dynamic in the graph.
 
     Returns:
         :math:`(B, M, C)` radiosity :math:`B(x_o)` (multiply by :math:`F_t/\\pi` for radiance), in the promoted
@@ -190,22 +192,29 @@ def reference_radiosity(
                                      compiled=True)
             return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work \
                 else result.to(out_dtype)
+    if is_exporting():
+        # an exported graph: one block of all (receiver, source) pairs. The chunk loops below compare the sizes
+        # with Python ints (min, range), which would freeze N and M into the graph; memory is then the caller's
+        # to bound (B x M x N x C temporaries).
+        blocks = [(slice(None), [slice(None)])]
+    else:
+        m_chunk = max(1, min(m, 4096, max_pairs))
+        n_chunk = max(1, min(n, max_pairs // m_chunk))
+        blocks = [(slice(m0, min(m, m0 + m_chunk)), [slice(n0, min(n, n0 + n_chunk)) for n0 in range(0, n, n_chunk)])
+                  for m0 in range(0, m, m_chunk)]
     out = []
-    m_chunk = max(1, min(m, 4096, max_pairs))
-    n_chunk = max(1, min(n, max_pairs // m_chunk))
-    for m0 in range(0, m, m_chunk):
-        m1 = min(m, m0 + m_chunk)
-        acc = torch.zeros(b, m1 - m0, c, dtype=dtype, device=dst_pos.device)
-        for n0 in range(0, n, n_chunk):
-            n1 = min(n, n0 + n_chunk)
-            r = pairwise_distance(dst_pos[:, m0:m1], src_pos[:, n0:n1])  # (B, m, n, 1)
+    for ms, n_slices in blocks:
+        dst = dst_pos[:, ms]
+        acc = torch.zeros(b, dst.shape[1], c, dtype=dtype, device=dst_pos.device)
+        for ns in n_slices:
+            r = pairwise_distance(dst, src_pos[:, ns])  # (B, m, n, 1)
             if src_distance_scale is not None:
-                r = r * src_distance_scale[:, None, n0:n1].to(work)
+                r = r * src_distance_scale[:, None, ns].to(work)
             kern = profile(r)  # (B, m, n, C)
             if src_ids is not None:
-                same = (dst_ids[:, m0:m1, None] == src_ids[:, None, n0:n1]).unsqueeze(-1)
+                same = (dst_ids[:, ms, None] == src_ids[:, None, ns]).unsqueeze(-1)
                 kern = kern * (same.to(kern.dtype) if id_weight is None else id_weight(r, same))
-            acc = acc + (kern * weight[:, None, n0:n1]).sum(2)
+            acc = acc + (kern * weight[:, None, ns]).sum(2)
         out.append(acc)
     result = torch.cat(out, dim=1)
     return result if out_dtype in (torch.float32, torch.float64) or result.dtype != work else result.to(out_dtype)
