@@ -126,9 +126,10 @@ def _frames(renderer, scene: Scene, frames: int, device: str) -> tuple:
     return first, cold, statistics.median(warm) if warm else cold
 
 
-def bench_scene(name: str, path: Path, args, log=print) -> list[dict]:
+def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
+    """One scene (a file or a :class:`Scene`): the reference, then each method at its planned knobs."""
     device = args.device
-    scene = load_scene(path)
+    scene = path if isinstance(path, Scene) else load_scene(path)
     res = 64 if args.quick else args.resolution
     scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=res, height=res))
     records = []
