@@ -157,7 +157,8 @@ def output_paths(out: Path) -> tuple[Path, Path, Path]:
 
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
            resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None, spp: int = 1,
-           exposure_ev: float = 0.0, tolerance: float = 0.02, explicit: dict | None = None) -> dict:
+           exposure_ev: float = 0.0, tolerance: float = 0.02, explicit: dict | None = None,
+           save_gbuffers: Path | None = None) -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
     ``out`` is the EXR or the PNG path (:func:`output_paths`); the other image (the PNG is tone-mapped) and the
@@ -172,9 +173,16 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
     scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with ``explicit`` knob flags
     (:data:`KNOB_FLAGS` dests) on top; the JSON gets the plan (``"plan"``).
+
+    ``save_gbuffers`` (splat and lensch): also write the first frame's G-buffers and its exported ONNX frame graph to
+    that ``.npz`` (:func:`torchsss.export.frames.save_scene_gbuffers`; ``export/ort_render.py`` renders it).
     """
     exr, png, json_path = output_paths(out)
     path, scene = _scene(scene_arg, resolution)
+    if save_gbuffers is not None:
+        from torchsss.export.frames import check_gbuffer_request
+
+        check_gbuffer_request(method, spp, scene)
     if profile is not None:
         if scene.objects:
             scene = dataclasses.replace(scene, objects=tuple(
@@ -220,6 +228,11 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
         p = planned.to_json()
         p["candidates"] = p["candidates"][:10]
         summary["plan"] = jsonable(p)
+    if save_gbuffers is not None:
+        from torchsss.export.frames import save_scene_gbuffers
+
+        summary["gbuffers"] = str(save_scene_gbuffers(save_gbuffers, scene, method, dtype=dtype, frames=frames,
+                                                      spp=spp, options=options, radiance=result.radiance))
     json_path.write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -382,6 +395,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--profile", choices=list(PROFILES), default=None,
                        help="render the scene's material with this profile model (default: the scene's, dipole)")
     p_ren.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    p_ren.add_argument("--save-gbuffers", type=Path, default=None, metavar="GBUFFERS.npz",
+                       help="splat/lensch: also save the first frame's G-buffers and its ONNX frame graph "
+                            "(render them without torch: python export/ort_render.py GBUFFERS.npz)")
     p_plan = sub.add_parser("plan", help="print the planned method and knobs for a tolerance (no rendering)")
     p_plan.add_argument("scene", help="scene JSON file, or 'default'")
     p_plan.add_argument("--tolerance", type=float, default=0.02, help="relative RMSE to meet (default 0.02)")
@@ -446,11 +462,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution,
                              frames=args.frames, profile=args.profile, spp=args.spp, exposure_ev=args.exposure,
-                             tolerance=0.02 if args.tolerance is None else args.tolerance, explicit=explicit)
+                             tolerance=0.02 if args.tolerance is None else args.tolerance, explicit=explicit,
+                             save_gbuffers=args.save_gbuffers)
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]
-        print(f"wrote {summary['exr']}, {summary['png']}, {summary['json']}")
+        print(f"wrote {summary['exr']}, {summary['png']}, {summary['json']}"
+              + (f", {summary['gbuffers']}" if "gbuffers" in summary else ""))
         head = (f"{summary['method']}: {summary['width']}x{summary['height']}, "
                 f"{summary['covered_pixels']} covered pixels")
         if "spacing_mm" in st:
