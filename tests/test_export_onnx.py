@@ -350,3 +350,30 @@ def test_export_and_compare_restore_training_flags(exported):
     case, path, _ = exported("material")  # registry modules are built in training mode, the nn.Module default
     compare_with_eager(case.module, path, case.test_args)
     assert case.module.training and all(m.training for m in case.module.modules())
+
+
+def test_rewrite_constant_pow_matches_pow():
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from torchsss.export import rewrite_constant_pow
+
+    exps = [2.0, 1.5, 0.5, 3.0, 1.0, 2.5]  # 2.5 is not rewritten
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N"])
+    outs = [helper.make_tensor_value_info(f"y{i}", TensorProto.FLOAT, ["N"]) for i in range(len(exps))]
+    inits = [numpy_helper.from_array(np.array(e, dtype=np.float32), f"c{i}") for i, e in enumerate(exps)]
+    nodes = [helper.make_node("Pow", ["x", f"c{i}"], [f"y{i}"], name=f"p{i}") for i in range(len(exps))]
+    model = helper.make_model(helper.make_graph(nodes, "g", [x], outs, inits),
+                              opset_imports=[helper.make_opsetid("", 18)])
+    xs = np.concatenate([np.linspace(0, 50, 1001), [1e-30, 3e-39]]).astype(np.float32)
+
+    def run(m):
+        return ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"x": xs})
+
+    before = run(model)
+    assert rewrite_constant_pow(model) == 5
+    assert [n.op_type for n in model.graph.node].count("Pow") == 1
+    after = run(model)
+    for e, b, a in zip(exps, before, after):
+        np.testing.assert_allclose(a, b, rtol=4e-7, atol=0, err_msg=str(e))
+        np.testing.assert_array_equal(a == 0, b == 0)

@@ -17,6 +17,7 @@ from torchsss.export.core import (
     compare_with_eager,
     declared_dynamic_dims,
     export_onnx,
+    rewrite_constant_pow,
     run_onnxruntime,
     verify_dynamic_dims,
 )
@@ -38,6 +39,7 @@ __all__ = [
     "export_case",
     "export_onnx",
     "material_inputs",
+    "rewrite_constant_pow",
     "run_onnxruntime",
     "verify_dynamic_dims",
     "with_material_inputs",

@@ -36,6 +36,7 @@ __all__ = [
     "compare_with_eager",
     "declared_dynamic_dims",
     "export_onnx",
+    "rewrite_constant_pow",
     "run_onnxruntime",
     "verify_dynamic_dims",
 ]
@@ -130,6 +131,7 @@ def export_onnx(
     opset: int = 18,
     input_names: Sequence[str] | None = None,
     output_names: Sequence[str] | None = None,
+    rewrite_pow: bool = True,
 ) -> Path:
     """Export ``module`` to an ONNX file with the dynamo exporter (``torch.onnx.export(..., dynamo=True)``).
 
@@ -151,6 +153,9 @@ def export_onnx(
         input_names: optional names of the graph inputs, one per tensor in ``args`` (default: the ``forward``
             parameter names).
         output_names: optional names of the graph outputs.
+        rewrite_pow: replace ``Pow`` by a constant exponent 2, 3, 0.5 or 1.5 with ``Mul``/``Sqrt``
+            (:func:`rewrite_constant_pow`): onnxruntime's ``Pow`` calls ``std::pow`` per element, several times
+            slower than a multiplication (the square in a distance, :math:`x^{3/2}` in the dipole).
 
     Returns:
         The path written, as a :class:`pathlib.Path`.
@@ -200,6 +205,8 @@ def export_onnx(
             verbose=False,
         )
     model = onnx.load(str(path), load_external_data=False)
+    if rewrite_pow and rewrite_constant_pow(model):
+        onnx.save(model, str(path))
     written = next((o.version for o in model.opset_import if o.domain in ("", "ai.onnx")), None)
     if written != opset:
         raise RuntimeError(f"{path}: expected default-domain opset {opset} in the exported file, got {written}")
@@ -222,6 +229,60 @@ def _nest_varargs(module: nn.Module, dynamic_shapes: Any) -> Any:
         return dynamic_shapes
     # keyed by parameter name: the exporter turns a nested tuple spec into a list that no longer matches the args
     return {**dict(zip(named, dynamic_shapes[:k])), var: tuple(dynamic_shapes[k:])}
+
+
+def _constant_values(graph: Any) -> dict[str, np.ndarray]:
+    from onnx import numpy_helper
+
+    values = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
+    for node in graph.node:
+        if node.op_type == "Constant":
+            for a in node.attribute:
+                if a.name == "value":
+                    values[node.output[0]] = numpy_helper.to_array(a.t)
+    return values
+
+
+def rewrite_constant_pow(model: Any) -> int:
+    """Replace ``Pow(x, c)`` with a scalar constant ``c`` in {1, 2, 3, 0.5, 1.5} by ``Mul``/``Sqrt`` nodes, in place.
+
+    The results agree with ``Pow`` to a few ulps (``x * sqrt(x)`` for :math:`x^{3/2}`); a ``Pow`` whose exponent is
+    not such a constant is left alone. Returns the number of nodes replaced (top-level graph only).
+    """
+    from onnx import helper
+
+    graph = model.graph
+    consts = _constant_values(graph)
+    new_nodes = []
+    count = 0
+    for node in graph.node:
+        c = consts.get(node.input[1]) if node.op_type == "Pow" and len(node.input) == 2 else None
+        value = float(c.reshape(-1)[0]) if c is not None and c.size == 1 else None
+        if value not in (1.0, 2.0, 3.0, 0.5, 1.5):
+            new_nodes.append(node)
+            continue
+        x, y, stem = node.input[0], node.output[0], node.name or f"pow_{count}"
+        if value == 1.0:
+            new_nodes.append(helper.make_node("Identity", [x], [y], name=f"{stem}_id"))
+        elif value == 2.0:
+            new_nodes.append(helper.make_node("Mul", [x, x], [y], name=f"{stem}_sq"))
+        elif value == 3.0:
+            new_nodes += [helper.make_node("Mul", [x, x], [f"{stem}_x2"], name=f"{stem}_sq"),
+                          helper.make_node("Mul", [f"{stem}_x2", x], [y], name=f"{stem}_cube")]
+        elif value == 0.5:
+            new_nodes.append(helper.make_node("Sqrt", [x], [y], name=f"{stem}_sqrt"))
+        else:
+            new_nodes += [helper.make_node("Sqrt", [x], [f"{stem}_sqrt"], name=f"{stem}_sqrt"),
+                          helper.make_node("Mul", [x, f"{stem}_sqrt"], [y], name=f"{stem}_x15")]
+        count += 1
+    if count:
+        del graph.node[:]
+        graph.node.extend(new_nodes)
+        used = {i for n in graph.node for i in n.input}
+        keep = [t for t in graph.initializer if t.name in used or t.name in {v.name for v in graph.output}]
+        del graph.initializer[:]
+        graph.initializer.extend(keep)
+    return count
 
 
 def _dim_name(dim: object) -> str:
