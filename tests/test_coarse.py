@@ -95,3 +95,27 @@ def test_reference_renderer_stride():
     assert image_error(coarse, full)["rel_rmse"] < 0.01, image_error(coarse, full)
     r.knobs["stride"] = 1
     assert torch.equal(r.render(light, cam).radiance, full.radiance)
+
+
+def test_supersampled_reference_converges_to_the_pixel_integral_at_little_cost():
+    """The reference's default with ``spp=16``: B on the fine grid at stride 4 (the supersampling factor).
+
+    A back-lit thin torus (the light behind it, a 5% fill beside the camera) at 24x24: one sample per pixel is
+    several % off the pixel integral (silhouettes and the thin tube's terminators); 16 spp with the automatic
+    stride is within 1% of the fully evaluated 16-spp frame, with a fraction of its receivers (measured: 0.4% and
+    11.8% at the default spacing, 2,477 receivers against 6,074).
+    """
+    from torchsss.geometry import PointLight, torus
+
+    mesh = torus(5.0, 1.8, 40, 20)
+    cam = Camera(eye=(0, 3.0, 24.0), target=(0, 0, 0), width=24, height=24, fov_deg=30.0)
+    lights = [PointLight((-4.0, 5.0, -30.0), 900.0), PointLight((12.0, 6.0, 16.0), 20.0)]
+    r = build("reference", mesh, "apple", spacing_mm=1.0)  # coarser sources than the default: a faster test
+    auto = r.render(lights, cam, spp=16)
+    one = r.render(lights, cam)
+    r.knobs["stride"] = 1
+    full = r.render(lights, cam, spp=16)
+    err_auto, err_one = image_error(auto, full)["rel_rmse"], image_error(one, full)["rel_rmse"]
+    assert err_auto < 0.01, err_auto
+    assert err_one > 0.03, err_one  # pixel integration matters on this scene
+    assert auto.stats["receivers"] < 0.5 * full.stats["receivers"], (auto.stats["receivers"], full.stats["receivers"])

@@ -165,6 +165,7 @@ class Renderer:
         self.material = None if material is None and not self.needs_material else \
             material_module(material, dtype=None if isinstance(material, nn.Module) else self.dtype,
                             device=self.device)
+        self._supersample = 1
         self._build()
         self.setup_s = time.perf_counter() - t0
 
@@ -217,6 +218,7 @@ class Renderer:
             raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
         lights = check_lights(lights)
         fine, factor = supersample_camera(camera, spp)
+        self._supersample = factor  # a method may evaluate smooth parts of the fine grid more coarsely
         t0 = time.perf_counter()
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
             result = box_downsample(self._render(lights, fine), factor)
