@@ -45,8 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ROOT / "benchmarks" / "results"
 R, ZC, HALF, IOR, MAP, SIGMA = 10.0, 16.0, 15.0, 1.5, 128, 1.0
 F64 = torch.float64
-COLUMNS = ["source", "grid", "map", "faces", "rel_l1", "focus_rel_l1", "energy_ratio", "peak_ratio",
-           "t_module_ms", "t_gbuffers_ms", "t_frame_ms"]
+COLUMNS = ["source", "splat", "grid", "map", "faces", "rel_rmse", "rel_l1", "focus_rel_l1", "energy_ratio",
+           "peak_ratio", "t_module_ms", "t_gbuffers_ms", "t_frame_ms"]
 
 
 def photon_histogram(h: int, m: int, seed: int = 0) -> np.ndarray:
@@ -112,15 +112,17 @@ def scene_meshes(subdivisions: int):
     return s, plane(120.0, 120.0, 4, dtype=F64)
 
 
-def measure(source: str, grid: int, inputs: tuple, ref: np.ndarray, hist_total: float, extra: dict,
-            repeats: int) -> dict:
-    module = CausticMap(IOR, 0.0, mode="double", sigma_px=SIGMA)
+def measure(source: str, grid: int, inputs: tuple, refs: dict, hist_total: float, extra: dict,
+            repeats: int, splat: str) -> dict:
+    module = CausticMap(IOR, 0.0, mode="double", sigma_px=SIGMA, splat=splat)
+    ref = refs[splat]
     with torch.no_grad():
         cmap = module(*inputs)[0, 0].numpy()
         t = time_callable(lambda: module(*inputs), repeats=repeats, warmup=1, min_time_s=0.0)
     focus = ref > 0.1 * ref.max()
     rec = {
-        "benchmark": "sphere", "source": source, "grid": grid, "map": MAP, **extra,
+        "benchmark": "sphere", "source": source, "splat": splat, "grid": grid, "map": MAP, **extra,
+        "rel_rmse": float(np.sqrt(((cmap - ref) ** 2).sum() / (ref**2).sum())),
         "rel_l1": float(np.abs(cmap - ref).sum() / ref.sum()),
         "focus_rel_l1": float(np.abs(cmap - ref)[focus].sum() / ref[focus].sum()),
         "energy_ratio": float(cmap.sum() / hist_total),
@@ -128,7 +130,8 @@ def measure(source: str, grid: int, inputs: tuple, ref: np.ndarray, hist_total: 
         "t_module_ms": 1e3 * t["median_s"],
     }
     rec["t_frame_ms"] = rec["t_module_ms"] + (rec.get("t_gbuffers_ms") or 0.0)
-    print(f"{source:8s} grid {grid:4d}: rel L1 {rec['rel_l1']:.4f}, focus {rec['focus_rel_l1']:.4f}, energy "
+    print(f"{source:8s} {splat:8s} grid {grid:4d}: rel RMSE {rec['rel_rmse']:.4f}, rel L1 {rec['rel_l1']:.4f}, "
+          f"focus {rec['focus_rel_l1']:.4f}, energy "
           f"{rec['energy_ratio']:.4f}, module {rec['t_module_ms']:.1f} ms, frame {rec['t_frame_ms']:.1f} ms",
           flush=True)
     return rec
@@ -143,21 +146,24 @@ def main(argv=None) -> int:
     subdiv = 5 if args.quick else 6
     repeats = 2 if args.quick else 5
     hist = photon_histogram(MAP, 800 if args.quick else 2000, args.seed)
-    ref = ndimage.gaussian_filter(hist, SIGMA, mode="constant", truncate=3.0)
+    # beam splats are compared with the binned exact irradiance, Gaussian splats with it blurred by their sigma
+    refs = {"beam": hist, "gaussian": ndimage.gaussian_filter(hist, SIGMA, mode="constant", truncate=3.0)}
     total = float(hist.sum())
     print(f"reference: {total:.3f} mm^2 of the sphere's {np.pi * R * R:.3f} reach the map", flush=True)
     refractor, receiver = scene_meshes(subdiv)
     light = DirectionalLight((0.0, 0.0, -1.0), 1.0)
     records = []
     for g in grids:
-        records.append(measure("analytic", g, analytic_inputs(g), ref, total, {"faces": None}, repeats))
+        for splat in ("beam", "gaussian"):
+            records.append(measure("analytic", g, analytic_inputs(g), refs, total, {"faces": None}, repeats, splat))
         t0 = time.perf_counter()
         gb = caustic_gbuffers(refractor, receiver, light, g, map_resolution=MAP, margin=HALF / R)
         t_gb = time.perf_counter() - t0
         inputs = list(gb.module_inputs())
         inputs[8] = inputs[8][:, :1]  # one channel: the light is white
-        records.append(measure("mesh", g, tuple(inputs), ref, total,
-                               {"faces": refractor.num_faces, "t_gbuffers_ms": 1e3 * t_gb}, repeats))
+        for splat in ("beam", "gaussian"):
+            records.append(measure("mesh", g, tuple(inputs), refs, total,
+                                   {"faces": refractor.num_faces, "t_gbuffers_ms": 1e3 * t_gb}, repeats, splat))
     name = args.name + ("_quick" if args.quick and args.name == "caustics" else "")
     finish_benchmark(name, records, args.out_dir, columns=COLUMNS, start=start)
     return 0

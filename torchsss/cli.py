@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from torchsss._json import jsonable
-from torchsss.io import auto_exposure, tonemap, write_exr, write_png
+from torchsss.io import auto_exposure, key_exposure, tonemap, write_exr, write_png
 from torchsss.physics import (
     chang_rp,
     dipole_rd,
@@ -168,7 +168,8 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     ``profile`` renders the scene's material with another profile model (``dipole``, ``burley``, ``tabulated``).
     ``spp`` (a square) box-filters that many stratified sub-pixel samples per pixel. The PNG's exposure is automatic
     over the object's pixels (:func:`~torchsss.io.auto_exposure`) plus ``exposure_ev`` stops; the JSON records the
-    multiplier (the EXR stays linear).
+    multiplier (the EXR stays linear). Caustics scenes use :func:`~torchsss.io.key_exposure` and the extended tone
+    curve instead (the floor's median at 0.5, the brightest caustic pixel at white), so neither is lost.
 
     ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
     scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with ``explicit`` knob flags
@@ -206,8 +207,13 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     exr.parent.mkdir(parents=True, exist_ok=True)
     image = result.radiance[0].detach().float()
     write_exr(exr, image)
-    exposure = auto_exposure(image, result.mask[0]) * 2.0 ** float(exposure_ev)
-    write_png(png, tonemap(image, exposure))
+    white = None
+    if method == "caustics":  # high dynamic range: floor at the key, the caustic up to the white point
+        exposure, white = key_exposure(image, result.mask[0])
+        exposure *= 2.0 ** float(exposure_ev)
+    else:
+        exposure = auto_exposure(image, result.mask[0]) * 2.0 ** float(exposure_ev)
+    write_png(png, tonemap(image, exposure, white=white))
     if scene.objects:
         what = {"objects": [{"mesh": o.mesh, "size_mm": o.size_mm, "translate": list(o.translate),
                              "material": o.material.to_json()} for o in scene.objects]}
@@ -222,7 +228,7 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                "covered_pixels": int(result.mask.sum()), "max_radiance": float(image.max()),
                "mean_radiance_covered": [float(v) for v in (image * result.mask[0]).flatten(1).sum(1)
                                          / max(1, int(result.mask.sum()))],
-               "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev,
+               "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev, "white": white,
                "stats": jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
     if planned is not None:
         p = planned.to_json()

@@ -72,7 +72,7 @@ from torchsss._checks import (
     skip_value_checks,
 )
 from torchsss.modules.search import NewtonRaphsonSearch
-from torchsss.ops.caustic_splat import default_kernel_size, splat_caustics
+from torchsss.ops.caustic_splat import default_kernel_size, splat_caustic_beams, splat_caustics
 from torchsss.ops.newton_raphson import lookup_positions
 from torchsss.ops.refraction import reflect, refract
 from torchsss.physics.fresnel import fresnel_reflectance, fresnel_transmittance
@@ -83,6 +83,7 @@ _MODES = ("double", "single", "reflect")
 _BACK = ("search", "wyman")
 _FLUX = ("texel", "shah")
 _METHODS = ("shah", "newton")
+_SPLATS = ("beam", "gaussian")
 
 
 def _channels(value: object, name: str, positive: bool) -> Tensor:
@@ -133,12 +134,20 @@ class CausticMap(nn.Module):
             tangent steps on the steep rim of a curved back surface overshoot past the silhouette, where the
             lookup misses and the ray is dropped (measured on a glass sphere: Newton loses every grid point
             beyond 0.875 R, a quarter of them; Shah's estimator with 12 updates finds all of them within 0.1 mm).
-        sigma_px: standard deviation of the Gaussian splats, in caustic-map texels.
-        kernel_size: fixed splat window (default :math:`2 \\lceil 3\\sigma \\rceil + 1`).
+        sigma_px: standard deviation of the Gaussian splats, in caustic-map texels (``splat="gaussian"``).
+        kernel_size: fixed splat window (default :math:`2 \\lceil 3\\sigma \\rceil + 1`; ``splat="gaussian"``).
         fresnel: weight by the exact Fresnel transmittance of each interface (reflectance for ``"reflect"``).
         flux: ``"texel"`` (power through each grid texel, default) or ``"shah"`` (eq. 5.6).
         lowpass_sigma_px: optional Gaussian low-pass of the caustic map (texels, kornia ``gaussian_blur2d`` with
             reflected borders; 0 = off), the smoothing Shah applies against splat gaps.
+        splat: ``"beam"`` (default): every grid texel's flux is spread over its beam's footprint on the receiver
+            (:func:`~torchsss.ops.caustic_splat.splat_caustic_beams`: the piecewise-bilinear interpolation of the
+            neighbouring grid points' hit points, ``subdivisions``:sup:`2` sub-points per texel with box splats of
+            their own footprint): the binned irradiance, smooth at the default grid and sharp at a focus.
+            ``"gaussian"``: Shah's fixed Gaussian point splats (``sigma_px``, ``kernel_size``).
+        subdivisions: sub-points per grid texel and axis of the beam splats (>= 1).
+        max_stretch_px: neighbouring grid points whose hit points lie farther apart than this (caustic-map
+            texels) are not one beam (beam splats).
 
     Raises:
         TypeError, ValueError: options of the wrong type or out of range (naming the option). ``forward`` raises
@@ -167,17 +176,26 @@ class CausticMap(nn.Module):
         fresnel: bool = False,
         flux: str = "texel",
         lowpass_sigma_px: float = 0.0,
+        splat: str = "beam",
+        subdivisions: int = 4,
+        max_stretch_px: float = 32.0,
     ) -> None:
         super().__init__()
         for name, value, allowed in (("mode", mode, _MODES), ("back", back, _BACK), ("method", method, _METHODS),
-                                     ("back_method", back_method, _METHODS), ("flux", flux, _FLUX)):
+                                     ("back_method", back_method, _METHODS), ("flux", flux, _FLUX),
+                                     ("splat", splat, _SPLATS)):
             if not isinstance(value, str) or value not in allowed:
                 raise ValueError(f"{name}: expected one of {allowed}, got {value!r}")
-        for name, value in (("iterations", iterations), ("back_iterations", back_iterations)):
+        for name, value, lo in (("iterations", iterations, 0), ("back_iterations", back_iterations, 0),
+                                ("subdivisions", subdivisions, 1)):
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-                raise TypeError(f"{name}: expected an int >= 0, got {type(value).__name__}")
-            if value < 0:
-                raise ValueError(f"{name}: expected an int >= 0, got {value}")
+                raise TypeError(f"{name}: expected an int >= {lo}, got {type(value).__name__}")
+            if value < lo:
+                raise ValueError(f"{name}: expected an int >= {lo}, got {value}")
+        if isinstance(max_stretch_px, bool) or not isinstance(max_stretch_px, numbers.Real):
+            raise TypeError(f"max_stretch_px: expected a real number > 0, got {type(max_stretch_px).__name__}")
+        if not 0.0 < float(max_stretch_px) < float("inf"):
+            raise ValueError(f"max_stretch_px: expected a finite number > 0, got {max_stretch_px!r}")
         if not isinstance(fresnel, bool):
             raise TypeError(f"fresnel: expected a bool, got {type(fresnel).__name__}")
         k_default = default_kernel_size(sigma_px)  # validates sigma_px
@@ -186,7 +204,8 @@ class CausticMap(nn.Module):
                 raise TypeError(f"kernel_size: expected an int >= 1 or None, got {type(kernel_size).__name__}")
             if kernel_size < 1:
                 raise ValueError(f"kernel_size: expected an int >= 1 or None, got {kernel_size}")
-        self.mode, self.back, self.flux = mode, back, flux
+        self.mode, self.back, self.flux, self.splat = mode, back, flux, splat
+        self.subdivisions, self.max_stretch_px = int(subdivisions), float(max_stretch_px)
         #: The receiver search (:class:`~torchsss.modules.NewtonRaphsonSearch`, ``iterations`` x ``method``).
         self.search = NewtonRaphsonSearch(int(iterations), method)
         #: The back-surface search (``back="search"``; ``back_iterations`` x ``back_method``).
@@ -347,6 +366,13 @@ class CausticMap(nn.Module):
             count = ok.to(dtype).sum(-1).clamp_min(1.0).view(b, 1, 1)
             power = cos_i[..., None] / count * intensity.to(dtype)[:, None, :]
         power = power * ok[..., None]
+        n_grid = n
+        compact = None
+        if b == 1 and not is_tracing():
+            # eager: trace the covered grid points only (data-dependent size; traced graphs keep every point)
+            compact = ok[0].nonzero()[:, 0]
+            p, n_f, inc_u, cos_i, power, ok = (x.index_select(1, compact) for x in (p, n_f, inc_u, cos_i, power, ok))
+            n = int(compact.numel())
 
         # ---- the outgoing rays, one per (grid point, channel) -------------------------------------------------
         exp_c = (b, n, c, 3)
@@ -364,10 +390,14 @@ class CausticMap(nn.Module):
                 origin, out_dir = p[:, :, None, :].expand(exp_c), t1
                 inside_len = torch.zeros_like(power)
             else:
-                origin, out_dir, d_in, alive2, w2 = self._through_back(
-                    p, t1, back_position, back_normal, back_mask, view_proj, ior, exp_c
+                origin, out_dir, d_in, found, tir2, n_b = self.through_back(
+                    p, t1, back_position, back_normal, back_mask, view_proj, ior
                 )
-                alive = alive & alive2
+                alive = alive & found & ~tir2
+                if self.fresnel:
+                    w2 = fresnel_transmittance((t1 * n_b).sum(-1).abs(), 1.0 / ior)
+                else:
+                    w2 = torch.ones_like(d_in)
                 inside_len = d_in
                 weight = weight * w2
 
@@ -382,8 +412,19 @@ class CausticMap(nn.Module):
         q = torch.where(alive[..., None], q, torch.zeros_like(q))
         flux = power * weight * torch.exp(-k_a * inside_len)
         flux = torch.where(alive, flux, torch.zeros_like(flux))
+        if compact is not None:
+            q = q.new_zeros(b, n_grid, c, 3).index_copy(1, compact, q)
+            flux = flux.new_zeros(b, n_grid, c).index_copy(1, compact, flux)
+            alive = alive.new_zeros(b, n_grid, c).index_copy(1, compact, alive)
+            n = n_grid
         size = (receiver_position.shape[-2], receiver_position.shape[-1])
-        out = splat_caustics(q, flux, alive, view_proj, size, self.sigma_px, self.kernel_size)
+        if self.splat == "beam":
+            out = splat_caustic_beams(q.reshape(b, hg, wg, c, 3), flux.reshape(b, hg, wg, c),
+                                      alive.reshape(b, hg, wg, c), view_proj, size, self.subdivisions,
+                                      max_stretch_px=self.max_stretch_px,
+                                      coverage=torch.isfinite(receiver_position).all(1, keepdim=True))
+        else:
+            out = splat_caustics(q, flux, alive, view_proj, size, self.sigma_px, self.kernel_size)
         if self.lowpass_sigma_px > 0:
             # Shah's optional low-pass of the caustic map (kornia; reflected borders keep the flux on the map, up to
             # the mirrored texels at the edge)
@@ -391,12 +432,32 @@ class CausticMap(nn.Module):
             out = gaussian_blur2d(out, (k, k), (self.lowpass_sigma_px, self.lowpass_sigma_px), border_type="reflect")
         return out
 
-    def _through_back(
+    def through_back(
         self, p: Tensor, t1: Tensor, back_position: Tensor, back_normal: Tensor, back_mask: Tensor,
-        view_proj: Tensor, ior: Tensor, exp_c: tuple[int, int, int, int],
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Exit point, exit direction, path inside, validity and Fresnel weight of the double-surface path."""
-        b, n, c, _ = exp_c
+        view_proj: Tensor, ior: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Where rays refracted into the object leave it through the back layer (double-surface refraction).
+
+        The back-surface step of :meth:`forward` (``back="search"`` or ``"wyman"``), also used for the camera view
+        of the refractor (:func:`~torchsss.pipelines.caustics.render_caustics`).
+
+        Args:
+            p: :math:`(B, N, 3)` entry points on the front layer (mm).
+            t1: :math:`(B, N, C, 3)` unit directions inside the object, one per channel.
+            back_position: :math:`(B, 3, H, W)` the back layer seen through ``view_proj`` (whose lines of sight pass
+                through the rays' source).
+            back_normal: :math:`(B, 3, H, W)` its normals.
+            back_mask: :math:`(B, 1, H, W)` its coverage.
+            view_proj: :math:`(B, 4, 4)` world-to-clip matrix of that view.
+            ior: :math:`(C,)` index of the object over the outside.
+
+        Returns:
+            ``(x_b, t2, d, found, tir, n_b)``: exit points :math:`(B, N, C, 3)`, exit directions (zero where
+            ``tir``), path lengths inside :math:`(B, N, C)`, the mask of rays whose exit point was found on the back
+            layer, the mask of total internal reflection there, and the unit back normals :math:`(B, N, C, 3)`.
+        """
+        b, n, c = t1.shape[0], t1.shape[1], t1.shape[2]
+        exp_c = (b, n, c, 3)
         dtype = p.dtype
         bmask = back_mask != 0
         nan = torch.full_like(back_position, float("nan"))
@@ -418,10 +479,4 @@ class CausticMap(nn.Module):
         n_b = _unit(n_b.reshape(exp_c))
         hit = hit.reshape(b, n, c) & ((n_b * n_b).sum(-1) > 0)
         t2, tir2 = refract(t1, n_b, ior)
-        alive = found & hit & ~tir2
-        if self.fresnel:
-            cos_in = (t1 * n_b).sum(-1).abs()
-            w2 = fresnel_transmittance(cos_in, 1.0 / ior)
-        else:
-            w2 = torch.ones_like(d)
-        return x_b, t2, d, alive, w2
+        return x_b, t2, d, found & hit, tir2 & found & hit, n_b

@@ -39,6 +39,7 @@ Conventions and choices:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 import time
@@ -57,10 +58,13 @@ from torchsss.geometry.lights import DirectionalLight, PointLight
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.shadow import bounding_sphere, build_shadow_map, light_camera, shadow_visibility
 from torchsss.modules.caustics import CausticMap
+from torchsss.ops.newton_raphson import lookup_positions
+from torchsss.ops.refraction import reflect, refract
 from torchsss.physics.fresnel import fresnel_reflectance
 
-__all__ = ["CausticGBuffers", "CausticsResult", "caustic_gbuffers", "caustic_irradiance", "caustic_light_camera",
-           "render_caustics", "texel_footprint"]
+__all__ = ["CausticGBuffers", "CausticsResult", "RefractorPaths", "caustic_gbuffers", "caustic_irradiance",
+           "caustic_light_camera", "lookup_camera", "refractor_paths", "render_caustics", "sky_radiance",
+           "texel_footprint"]
 
 _MAX_HALF_ANGLE_DEG = 80.0
 
@@ -117,6 +121,7 @@ class CausticsResult:
         irradiance_maps: per light, the light-view caustic irradiance maps.
         gbuffers: per light, the :class:`CausticGBuffers`.
         stats: timings in seconds.
+        paths: the refractor pixels' :class:`RefractorPaths` (None with ``appearance=False``).
     """
 
     radiance: Tensor
@@ -128,6 +133,7 @@ class CausticsResult:
     irradiance_maps: list = field(default_factory=list)
     gbuffers: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
+    paths: RefractorPaths | None = None
 
 
 # -- checks ------------------------------------------------------------------------------------------------------------
@@ -322,6 +328,145 @@ def _rgb(value: object, name: str, dtype: torch.dtype, device: torch.device) -> 
     return t.to(dtype=dtype, device=device)
 
 
+class RefractorPaths(NamedTuple):
+    """The two paths of light that reach the eye from each refractor pixel (see :func:`refractor_paths`).
+
+    Attributes:
+        reflect_origin, reflect_direction: :math:`(M, 3)` the mirror ray off the front surface.
+        reflect_hit: :math:`(M,)` bool, the mirror ray found a receiver; reflect_point :math:`(M, 3)` where.
+        reflect_weight: :math:`(M, C)` Fresnel reflectance of the front surface (1 for ``mode="reflect"``).
+        transmit_origin, transmit_direction: :math:`(M, C, 3)` the ray that leaves the object towards the scene
+            behind it, per channel (zero weight for ``mode="reflect"``).
+        transmit_hit: :math:`(M, C)` bool; transmit_point :math:`(M, C, 3)` the receiver point it sees.
+        transmit_weight: :math:`(M, C)` Fresnel transmittance of both surfaces times :math:`e^{-K_a d}`.
+    """
+
+    reflect_origin: Tensor
+    reflect_direction: Tensor
+    reflect_hit: Tensor
+    reflect_point: Tensor
+    reflect_weight: Tensor
+    transmit_origin: Tensor
+    transmit_direction: Tensor
+    transmit_hit: Tensor
+    transmit_point: Tensor
+    transmit_weight: Tensor
+
+
+def lookup_camera(camera: Camera, scale: float) -> Camera:
+    """The camera whose receiver positions texture the refractor's rays search: ``camera`` widened ``scale`` times.
+
+    Same eye, target, up and resolution; the tangent of the half field of view (or the orthographic half height)
+    times ``scale`` (the field capped at 170 degrees), so that rays bent out of the frame still find the receiver.
+    """
+    scale = _check_number(scale, "lookup_scale", 1.0, inclusive=True)
+    if camera.projection == "orthographic":
+        return dataclasses.replace(camera, ortho_half_height=camera.ortho_half_height * scale)
+    half = math.atan(scale * math.tan(math.radians(camera.fov_deg) / 2.0))
+    return dataclasses.replace(camera, fov_deg=min(170.0, math.degrees(2.0 * half)))
+
+
+def sky_radiance(direction: Tensor, horizon: Tensor, zenith: Tensor) -> Tensor:
+    """The simple environment of the caustics scenes: a sky gradient over +z, uniform below the horizon.
+
+    :math:`L(\\omega) = L_h + (L_z - L_h) \\max(0, \\omega_z)` for unit :math:`\\omega`; :math:`L_h` at and below the
+    horizon (a uniform environment when :math:`L_z = L_h`).
+
+    Args:
+        direction: :math:`(..., 3)` directions (any non-zero length).
+        horizon: :math:`(3,)` RGB radiance at and below the horizon.
+        zenith: :math:`(3,)` RGB radiance at the zenith.
+
+    Returns:
+        :math:`(..., 3)` radiance.
+    """
+    up = F.normalize(direction, dim=-1, eps=1e-30)[..., 2:3].clamp(0.0, 1.0)
+    return horizon + (zenith - horizon) * up
+
+
+def refractor_paths(module: CausticMap, position: Tensor, normal: Tensor, eye: Tensor, back_position: Tensor,
+                    back_normal: Tensor, back_mask: Tensor, view_proj: Tensor, receiver_position: Tensor,
+                    lookup_view_proj: Tensor) -> RefractorPaths:
+    """Trace the refractor's pixels as Shah §5.2 does: reflection, and one or two refractions, by texture lookups.
+
+    Every camera pixel on the refractor (front point ``position``, outward ``normal``) sends the view ray
+    :math:`v = x - \\text{eye}` (or the orthographic view direction) into
+
+    - the mirror ray :math:`\\text{reflect}(v, n)`, weighted by the exact Fresnel reflectance
+      :math:`F_r(\\cos\\theta_v)` (1 for ``module.mode == "reflect"``, a mirror);
+    - ``"double"``: the refracted ray :math:`t_1 = \\text{refract}(v, n, 1/\\eta_c)` (one per channel), whose exit
+      point on the back layer (the camera's farthest layer) is found by ``module``'s back-surface search
+      (:meth:`CausticMap.through_back`, the same Newton-Raphson/Shah search in the camera-view back positions
+      texture); it leaves along :math:`t_2 = \\text{refract}(t_1, n_b, \\eta_c)`, weighted by
+      :math:`(1 - F_r)(1 - F_r^{back})\\, e^{-K_a d}`. Total internal reflection at the back is followed one step:
+      the internally reflected ray leaves from the exit point (weight :math:`(1 - F_r) e^{-K_a d}`; the further
+      bounces inside are not traced). ``"single"``: :math:`t_1` from the front point, weight :math:`1 - F_r`.
+
+    Both rays then search the receiver in ``receiver_position`` (the receiver's positions texture from a camera
+    at the eye, :func:`lookup_camera`) with ``module.search``, the Newton-Raphson search of the caustic map.
+
+    Args:
+        module: the :class:`CausticMap` (index, absorption, mode and searches).
+        position: :math:`(M, 3)` front points of the refractor pixels.
+        normal: :math:`(M, 3)` their normals (either orientation).
+        eye: :math:`(3,)` the camera's eye (perspective) or :math:`(M, 3)` per-pixel view origins.
+        back_position: :math:`(1, 3, H, W)` the camera's farthest layer of the refractor (NaN: none).
+        back_normal: :math:`(1, 3, H, W)` its normals.
+        back_mask: :math:`(1, 1, H, W)` its coverage.
+        view_proj: :math:`(4, 4)` the camera's world-to-clip matrix.
+        receiver_position: :math:`(1, 3, H_l, W_l)` receiver positions seen from the lookup camera (NaN: none).
+        lookup_view_proj: :math:`(4, 4)` the lookup camera's matrix.
+
+    Returns:
+        :class:`RefractorPaths`.
+    """
+    dtype = position.dtype
+    m = position.shape[0]
+    ior = module.ior.to(dtype)
+    c = ior.numel()
+    k_a = module.absorption.to(dtype).expand(c) if module.absorption.numel() == 1 else module.absorption.to(dtype)
+    vp = view_proj.to(dtype)[None]
+    lvp = lookup_view_proj.to(dtype)[None]
+    view = position - eye
+    view = F.normalize(view, dim=-1, eps=1e-30)
+    n = F.normalize(normal, dim=-1, eps=1e-30)
+    n = torch.where(((n * view).sum(-1, keepdim=True) > 0), -n, n)  # face the viewer
+    cos_v = (-(n * view).sum(-1)).clamp(0.0, 1.0)
+    r_dir = reflect(view, n)
+    if module.mode == "reflect":
+        r_w = torch.ones(m, c, dtype=dtype, device=position.device)
+    else:
+        r_w = fresnel_reflectance(cos_v[:, None], ior)
+    t1, tir1 = refract(view[:, None, :], n[:, None, :], 1.0 / ior)  # (M, C, 3)
+    t_w = (1.0 - r_w) * ~tir1
+    if module.mode == "double":
+        x_b, t2, d, found, tir2, n_b = module.through_back(position[None], t1[None], back_position.to(dtype),
+                                                           back_normal.to(dtype), back_mask, vp, ior)
+        x_b, t2, d, found, tir2, n_b = x_b[0], t2[0], d[0], found[0], tir2[0], n_b[0]
+        cos_b = (t1 * n_b).sum(-1).abs()
+        f_back = fresnel_reflectance(cos_b, 1.0 / ior)  # from inside: relative index 1 / eta
+        t_dir = torch.where(tir2[..., None], reflect(t1, n_b), t2)
+        t_w = t_w * torch.where(tir2, torch.ones_like(f_back), 1.0 - f_back) * torch.exp(-k_a * d) * found
+        t_org = x_b
+    elif module.mode == "single":
+        t_org, t_dir = position[:, None, :].expand(m, c, 3), t1
+    else:
+        t_org, t_dir = position[:, None, :].expand(m, c, 3), t1
+        t_w = torch.zeros_like(t_w)
+    t_dir = torch.where(torch.isfinite(t_dir), t_dir, torch.zeros_like(t_dir))
+    t_org = torch.where(torch.isfinite(t_org), t_org, torch.zeros_like(t_org))
+
+    origins = torch.cat([position, t_org.reshape(m * c, 3)])[None]
+    dirs = torch.cat([r_dir, t_dir.reshape(m * c, 3)])[None]
+    rec = receiver_position.to(dtype)
+    dist, hit = module.search(origins, dirs, rec, lvp)
+    pts = origins + dist[..., None] * F.normalize(dirs, dim=-1, eps=1e-30)
+    pts = torch.where(hit[..., None], pts, torch.zeros_like(pts))[0]
+    hit = hit[0]
+    return RefractorPaths(position, r_dir, hit[:m], pts[:m], r_w, t_org, t_dir, hit[m:].reshape(m, c),
+                          pts[m:].reshape(m, c, 3), t_w)
+
+
 def render_caustics(
     refractor: Mesh,
     receiver: Mesh,
@@ -335,12 +480,15 @@ def render_caustics(
     mode: str = "double",
     albedo: float | Sequence[float] = 0.8,
     environment: float | Sequence[float] = 0.0,
+    environment_zenith: float | Sequence[float] | None = None,
+    appearance: bool = True,
+    lookup_scale: float = 2.0,
     shadow_resolution: int = 1024,
     margin: float = 1.5,
     module: CausticMap | None = None,
     **module_kwargs,
 ) -> CausticsResult:
-    """Render the receiver lit directly and through the refractor's caustics, seen from ``camera``.
+    """Render the receiver lit directly and through the refractor's caustics, and the refractor, seen from ``camera``.
 
     Args:
         refractor: the refractive object (mm).
@@ -351,14 +499,19 @@ def render_caustics(
         absorption: :math:`K_a` in mm^-1 (a number or 3 values).
         resolution: refractive-grid size of every light view.
         map_resolution: caustic-map size (default ``resolution``).
-        mode: :class:`CausticMap` mode (``"double"``, ``"single"``, ``"reflect"``).
+        mode: :class:`CausticMap` mode (``"double"``, ``"single"``, ``"reflect"``); also the refractor's look.
         albedo: receiver diffuse albedo (number or RGB).
-        environment: uniform environment radiance reflected by the refractor (Fresnel); 0 draws it black.
+        environment: radiance of the environment at (and below) the horizon (number or RGB); seen in the
+            refractor's reflection and refraction and on the background pixels. 0 (default) is black.
+        environment_zenith: radiance at the zenith (+z) of a sky gradient (:func:`sky_radiance`); None: uniform.
+        appearance: draw the refractor with its reflection and refraction of the scene (:func:`refractor_paths`);
+            False draws only the Fresnel reflection of the environment.
+        lookup_scale: field of view of the receiver's lookup texture over the camera's (:func:`lookup_camera`).
         shadow_resolution: shadow-map size for the refractor's shadow.
         margin: light-camera half-extent over the refractor's bounding radius.
         module: a ready :class:`CausticMap` (then ``ior``, ``absorption``, ``mode`` and ``module_kwargs`` are not
             used); otherwise one is built from them.
-        **module_kwargs: more :class:`CausticMap` options (``sigma_px``, ``fresnel``, ``iterations``, ...).
+        **module_kwargs: more :class:`CausticMap` options (``splat``, ``subdivisions``, ``fresnel``, ...).
 
     Returns:
         :class:`CausticsResult` (image, masks, per-light maps, timings).
@@ -378,12 +531,16 @@ def render_caustics(
         raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
     if module is not None and not isinstance(module, CausticMap):
         raise TypeError(f"module: expected a CausticMap or None, got {type(module).__name__}")
+    if not isinstance(appearance, bool):
+        raise TypeError(f"appearance: expected a bool, got {type(appearance).__name__}")
     shadow_resolution = check_int(shadow_resolution, "shadow_resolution", 1)
     dtype, device = refractor.vertices.dtype, refractor.vertices.device
     if receiver.vertices.dtype != dtype or receiver.vertices.device != device:
         receiver = receiver.with_dtype(dtype).with_device(device)
     rho = _rgb(albedo, "albedo", dtype, device)
     env = _rgb(environment, "environment", dtype, device)
+    env_z = env if environment_zenith is None else _rgb(environment_zenith, "environment_zenith", dtype, device)
+    look_cam = lookup_camera(camera, lookup_scale)
     if module is None:
         module = CausticMap(ior, absorption, mode=mode, **module_kwargs)
     module = module.to(device)
@@ -393,6 +550,7 @@ def render_caustics(
     t0 = time.perf_counter()
     vp_cam = camera.view_proj(dtype=dtype, device=device)
     res = camera.resolution
+    h, w = res
     r_pos, r_nrm, r_mask, r_depth, *_ = layer_gbuffer(receiver, vp_cam, res, fill=0.0)
     f_pos, f_nrm, f_mask, f_depth, *_ = layer_gbuffer(refractor, vp_cam, res, fill=0.0)
     rec_vis = r_mask & (~f_mask | (r_depth < f_depth))
@@ -401,10 +559,34 @@ def render_caustics(
     nrm = r_nrm.flatten(2).transpose(1, 2)
     keep = rec_vis.flatten(1)
     pts = torch.where(keep[..., None], pts, torch.zeros_like(pts))
+    eye = torch.tensor(camera.eye, dtype=dtype, device=device)
+    # view rays of every pixel (origin far behind the image plane for an orthographic camera)
+    if camera.projection == "orthographic":
+        fwd = F.normalize(torch.tensor(camera.target, dtype=dtype, device=device) - eye, dim=0)
+    ref_idx = ref_vis.flatten().nonzero()[:, 0]
+    f_p = f_pos.flatten(2)[0].T.index_select(0, ref_idx)
+    f_n = f_nrm.flatten(2)[0].T.index_select(0, ref_idx)
+    origin = f_p - 1e3 * fwd if camera.projection == "orthographic" else eye
+    paths = None
+    n_extra = 0
+    if appearance and ref_idx.numel():
+        b_pos, b_nrm, b_mask, *_ = layer_gbuffer(refractor, vp_cam, res, farthest=True)
+        vp_look = look_cam.view_proj(dtype=dtype, device=device)
+        l_pos, l_nrm, l_mask, *_ = layer_gbuffer(receiver, vp_look, look_cam.resolution)
+        with torch.no_grad():
+            paths = refractor_paths(module, f_p, f_n, origin, b_pos, b_nrm, b_mask, vp_cam, l_pos, vp_look)
+        hit_pts = torch.cat([paths.reflect_point, paths.transmit_point.reshape(-1, 3)])
+        hit_ok = torch.cat([paths.reflect_hit, paths.transmit_hit.reshape(-1)])
+        l_nrm_tex = torch.where(l_mask, l_nrm, torch.full_like(l_nrm, float("nan")))
+        hit_n, _ = lookup_positions(hit_pts[None], l_nrm_tex, vp_look)
+        hit_n = F.normalize(hit_n, dim=-1, eps=1e-30)
+        n_extra = hit_pts.shape[0]
+        pts = torch.cat([pts, torch.where(hit_ok[:, None], hit_pts, torch.zeros_like(hit_pts))[None]], 1)
+        nrm = torch.cat([nrm, hit_n], 1)
+        keep = torch.cat([keep, hit_ok[None]], 1)
     t_camera = time.perf_counter() - t0
 
-    h, w = res
-    direct = torch.zeros(1, h * w, 3, dtype=dtype, device=device)
+    direct = torch.zeros(1, pts.shape[1], 3, dtype=dtype, device=device)
     caustic = torch.zeros_like(direct)
     maps, irr_maps, gbs = [], [], []
     t_gb = t_mod = t_shade = 0.0
@@ -441,24 +623,52 @@ def render_caustics(
         gbs.append(gb)
 
     t0 = time.perf_counter()
+    npx = h * w
 
     def img(x: Tensor) -> Tensor:
-        return x.transpose(1, 2).reshape(1, -1, h, w)
+        return x[:, :npx].transpose(1, 2).reshape(1, -1, h, w)
 
     direct_img, caustic_img = img(direct), img(caustic)
     radiance = rho.view(1, 3, 1, 1) / math.pi * (direct_img + caustic_img) * rec_vis
-    if bool(env.gt(0).any()):
-        eye = torch.tensor(camera.eye, dtype=dtype, device=device).view(1, 3, 1, 1)
-        if camera.projection == "orthographic":
-            tgt = torch.tensor(camera.target, dtype=dtype, device=device).view(1, 3, 1, 1)
-            view_dir = F.normalize(eye - tgt, dim=1).expand_as(f_pos)
-        else:
-            view_dir = F.normalize(eye - f_pos, dim=1, eps=1e-12)
-        cos_v = (view_dir * f_nrm).sum(1, keepdim=True).abs()
-        radiance = radiance + fresnel_reflectance(cos_v, eta) * env.view(1, 3, 1, 1) * ref_vis
+    # the refractor's pixels
+    if camera.projection == "orthographic":
+        view_dir = fwd.expand(ref_idx.numel(), 3)
+    else:
+        view_dir = F.normalize(f_p - eye, dim=-1, eps=1e-30)
+    if paths is not None:
+        seen = rho / math.pi * (direct[0, npx:] + caustic[0, npx:])  # (n_extra, 3) receiver radiance at the hits
+        m = ref_idx.numel()
+        c = paths.transmit_hit.shape[1]
+        l_r = torch.where(paths.reflect_hit[:, None], seen[:m], sky_radiance(paths.reflect_direction, env, env_z))
+        l_t = seen[m:].reshape(m, c, 3)
+        l_t = torch.where(paths.transmit_hit[..., None], l_t, sky_radiance(paths.transmit_direction, env, env_z))
+        if c == 1:
+            l_t = l_t[:, 0] * paths.transmit_weight
+        else:  # channel k sees its own ray
+            l_t = torch.diagonal(l_t, dim1=1, dim2=2) * paths.transmit_weight
+        shade = paths.reflect_weight * l_r + l_t
+    else:
+        cos_v = (view_dir * F.normalize(f_n, dim=-1, eps=1e-30)).sum(-1, keepdim=True).abs()
+        shade = fresnel_reflectance(cos_v, eta) * sky_radiance(-view_dir, env, env_z)
+    ref_img = torch.zeros(3, npx, dtype=dtype, device=device)
+    ref_img[:, ref_idx] = shade.T.to(dtype)
+    radiance = radiance + ref_img.view(1, 3, h, w)
+    # the background shows the environment
+    if bool((env > 0).any() or (env_z > 0).any()):
+        bg = ~(rec_vis | ref_vis)
+        ndc_y = 1.0 - (torch.arange(h, dtype=dtype, device=device) + 0.5) * 2.0 / h
+        ndc_x = (torch.arange(w, dtype=dtype, device=device) + 0.5) * 2.0 / w - 1.0
+        inv = torch.linalg.inv(vp_cam)
+        ny, nx = torch.meshgrid(ndc_y, ndc_x, indexing="ij")
+        near = torch.stack([nx, ny, -torch.ones_like(nx), torch.ones_like(nx)], -1) @ inv.T
+        far = torch.stack([nx, ny, torch.ones_like(nx), torch.ones_like(nx)], -1) @ inv.T
+        ray = far[..., :3] / far[..., 3:] - near[..., :3] / near[..., 3:]
+        sky = sky_radiance(ray, env, env_z).permute(2, 0, 1)[None]
+        radiance = torch.where(bg, sky, radiance)
     radiance = torch.nan_to_num(radiance, nan=0.0, posinf=0.0, neginf=0.0)
     t_shade += time.perf_counter() - t0
     stats = {"t_camera_s": t_camera, "t_gbuffers_s": t_gb, "t_module_s": t_mod, "t_shade_s": t_shade,
-             "t_frame_s": time.perf_counter() - t_start}
+             "t_frame_s": time.perf_counter() - t_start, "refractor_pixels": int(ref_idx.numel()),
+             "refractor_lookups": n_extra}
     return CausticsResult(radiance, rec_vis, ref_vis, direct_img * rec_vis, caustic_img * rec_vis, maps, irr_maps,
-                          gbs, stats)
+                          gbs, stats, paths)

@@ -31,7 +31,12 @@ class CausticsRenderer(Renderer):
         albedo: receiver diffuse albedo (number or RGB).
         grid: light-view (refractive grid) resolution.
         map_resolution: caustic-map size (None: ``grid``).
-        environment: uniform environment radiance reflected by the refractor (Fresnel).
+        environment: environment radiance at the horizon (number or RGB): seen in the refractor's reflection and
+            refraction and on the background.
+        environment_zenith: radiance at the zenith (+z) of the sky gradient (None: a uniform environment).
+        appearance: draw the refractor with its reflection and refraction of the scene (Shah §5.2), or (False)
+            with the Fresnel reflection of the environment only.
+        lookup_scale: field of the receiver's camera-view lookup texture over the camera's.
         shadow_resolution: shadow-map size for the refractor's shadow.
         margin: light-camera half-extent over the refractor's bounding radius.
     """
@@ -40,7 +45,8 @@ class CausticsRenderer(Renderer):
     needs_material = False
     defaults: ClassVar[dict] = dict(ior=1.5, absorption=0.0, mode="double", receiver_size_mm=120.0,
                                     receiver_center=(0.0, 0.0, 0.0), albedo=0.8, grid=256, map_resolution=None,
-                                    environment=0.0, shadow_resolution=1024, margin=1.5)
+                                    environment=(0.09, 0.1, 0.12), environment_zenith=(0.16, 0.2, 0.3),
+                                    appearance=True, lookup_scale=2.0, shadow_resolution=1024, margin=1.5)
 
     def _build(self) -> None:
         k = self.knobs
@@ -55,6 +61,8 @@ class CausticsRenderer(Renderer):
         k = self.knobs
         res = render_caustics(self.mesh, self.receiver, lights, camera, resolution=k["grid"],
                               map_resolution=k["map_resolution"], albedo=k["albedo"], environment=k["environment"],
-                              shadow_resolution=k["shadow_resolution"], margin=k["margin"], module=self.module)
+                              environment_zenith=k["environment_zenith"], appearance=k["appearance"],
+                              lookup_scale=k["lookup_scale"], shadow_resolution=k["shadow_resolution"],
+                              margin=k["margin"], module=self.module)
         mask = res.receiver_mask | res.refractor_mask
         return RenderResult(res.radiance, res.direct + res.caustic, mask, dict(res.stats))
