@@ -3,8 +3,11 @@
 Scenes (mm): a glass sphere (radius 10, centre 16 over the floor) under a directional light from straight above,
 and the Stanford bunny decimated to ~5k faces, 20 mm, resting 4 mm over the floor under a point light 120 mm above
 it. Both: n = (1.50, 1.52, 1.54) (dispersion), light absorption 0.01 / mm, a 120 mm floor of albedo 0.8, the
-refractor drawn with the Fresnel reflection of a dim uniform environment. Writes ``out/caustics_sphere.{exr,png}``
-and ``out/caustics_bunny.{exr,png}`` and prints the timings of every stage.
+refractor drawn with its own appearance (Fresnel reflection of a sky gradient and the floor seen through two
+refractions, Shah §5.2), the caustic map of beam splats. The PNG is tone-mapped for high dynamic range
+(:func:`torchsss.io.key_exposure`: the floor's median at 0.5, the brightest pixel at the extended curve's white;
+``--ev`` adds stops). Writes ``out/caustics_sphere.{exr,png}`` and ``out/caustics_bunny.{exr,png}`` and prints the
+timings of every stage.
 
 Usage::
 
@@ -25,7 +28,7 @@ from torchsss.geometry.lights import DirectionalLight, PointLight
 from torchsss.geometry.loading import load_mesh
 from torchsss.geometry.mesh import mesh_from_arrays
 from torchsss.geometry.procedural import plane, sphere
-from torchsss.io import tonemap, write_exr, write_png
+from torchsss.io import key_exposure, tonemap, write_exr, write_png
 from torchsss.pipelines.caustics import render_caustics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,16 +45,19 @@ def _render(name, refractor, light, camera, args):
     floor = plane(120.0, 120.0, 4)
     t0 = time.perf_counter()
     res = render_caustics(refractor, floor, light, camera, ior=IOR, absorption=0.01, resolution=args.grid,
-                          map_resolution=args.grid, environment=0.05, sigma_px=1.0)
+                          map_resolution=args.grid, environment=(0.09, 0.1, 0.12),
+                          environment_zenith=(0.16, 0.2, 0.3))
     took = time.perf_counter() - t0
     st = res.stats
     print(f"{name}: {refractor.num_faces} faces, grid {args.grid}, image {camera.width}x{camera.height}: "
           f"{took:.2f} s (light G-buffers {st['t_gbuffers_s']:.2f} s, CausticMap {st['t_module_s']:.2f} s, "
-          f"shading {st['t_shade_s']:.2f} s, camera raster {st['t_camera_s']:.2f} s); caustic flux "
+          f"shading {st['t_shade_s']:.2f} s, camera raster and refractor paths {st['t_camera_s']:.2f} s); caustic flux "
           f"{res.caustic_maps[0][0].sum((-2, -1)).tolist()}")
     out = args.out_dir / f"caustics_{name}.exr"
     write_exr(out, res.radiance[0].float())
-    write_png(out.with_suffix(".png"), tonemap(res.radiance[0], exposure=args.exposure))
+    subject = res.receiver_mask[0, 0] | res.refractor_mask[0, 0]
+    exposure, white = key_exposure(res.radiance[0], subject)
+    write_png(out.with_suffix(".png"), tonemap(res.radiance[0], exposure * 2.0**args.ev, white=white))
     print(f"wrote {out} and {out.with_suffix('.png')}")
 
 
@@ -63,7 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution", type=int, default=256, help="image width and height in pixels")
     ap.add_argument("--grid", type=int, default=256, help="refractive grid and caustic map resolution")
     ap.add_argument("--faces", type=int, default=5000, help="decimate the bunny to about this many faces")
-    ap.add_argument("--exposure", type=float, default=2.0, help="PNG exposure (radiance multiplier)")
+    ap.add_argument("--ev", type=float, default=0.0, help="PNG exposure compensation in stops")
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
     args = ap.parse_args(argv)
     if args.threads > 0:
