@@ -3,7 +3,8 @@
 For each entry of ``torchsss.export.EXPORTABLE`` the module is exported (dynamo, opset 18; the export time is
 recorded) and run on the registry's *test* inputs (the shapes that differ from the export shapes) in an onnxruntime
 CPU session created once (1 intra-op thread, sequential) and eagerly in torch (``torch.set_num_threads(1)``,
-``torch.no_grad``, eval mode), timed with interleaved samples (:func:`torchsss.bench.compare`). ``ort_over_eager``
+``torch.no_grad``, eval mode, ``TORCHSSS_COMPILE=0``: no fused compiled kernels), timed with interleaved samples
+(:func:`torchsss.bench.compare`). ``ort_over_eager``
 is the ratio of the medians (> 1: onnxruntime is slower); ``reason`` explains every ratio above 1.5 that this
 change did not close. ``max_rel_diff`` / ``max_abs_diff`` compare the two runtimes' outputs on the timed inputs.
 
@@ -15,6 +16,12 @@ Usage::
 """
 
 from __future__ import annotations
+
+import os
+
+# plain eager PyTorch as the baseline: the library's fused torch.compile kernels (torchsss.ops.fused, which take over
+# after enough eager work in one process) are off
+os.environ.setdefault("TORCHSSS_COMPILE", "0")
 
 import sys
 import tempfile
@@ -33,17 +40,20 @@ REASONS = {
     "local_response": "per-texel kernels as 25 shifted slices (sv_conv2d's export form): ORT runs 25 Slice/Mul/Add "
                       "nodes on (B, 3, 64, 64) where eager runs one fused C++ loop",
     "global_response": "the sparse throughput product is a gather + scatter_add over every nonzero (ORT has no CSR "
-                       "kernel; ONNX_NOTES: sparse tensors cannot enter a graph); eager here is the same scatter form",
+                       "kernel; ONNX_NOTES: sparse tensors cannot enter a graph); the registry's eager module uses "
+                       "the same scatter form (method='scatter', for tight parity)",
     "lensch": "local (25 slice taps) + global (gather + scatter_add over the nonzeros): both ORT formulations are "
               "elementwise passes over memory where eager has fused loops",
-    "lensch_materials": "as lensch, plus the kernels and throughput values are evaluated from the material inputs in "
-                        "every run (eager caches them per material; the baked graph folds them into constants)",
-    "splat": "the window path evaluates the dipole on every (splat, window tap) pair as dense (3, S, K^2) "
-             "temporaries + scatter_add; eager picks the tile path (candidate lists, data-dependent sizes that a "
-             "graph cannot have)",
+    "lensch_materials": "the kernels (64x64x5x5) and throughput values are evaluated from the material inputs in "
+                        "every run (in 'lensch' the exporter folds them into constants): the dipole on (..., 3) "
+                        "channels-last tensors, as for icdf",
+    "splat": "the graph evaluates the dipole on all S x K^2 (splat, window tap) pairs as dense (3, S, K^2) "
+             "temporaries, then scatter_add; eager compacts to the taps that land on a receiver within reach "
+             "(torch.nonzero: a data-dependent size, which a graph with dynamic S, H, W cannot have)",
     "splat_materials": "as splat",
-    "icdf": "all (receiver, sample) pairs in one block (the unchunked export form, so N and M stay dynamic): the "
-            "(B, M, N, 3) dipole temporaries go through memory once per op; eager chunks them in cache",
+    "icdf": "the dipole over all (receiver, sample) pairs: ~80 elementwise nodes on (B, M, N, 3), most of them "
+            "broadcasting a (3,) coefficient over the innermost axis of 3, which onnxruntime runs one 3-element span "
+            "at a time (a per-channel split with scalar coefficients was slower: more nodes, same bytes)",
     "icdf_materials": "as icdf",
     "hybrid": "as icdf for the global term, plus the local ring pattern's grid_sample lookups",
     "newton": "each of the 5 iterations is a chain of small gathers/grid_samples on (B, N) rays; ORT's per-node "

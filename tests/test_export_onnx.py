@@ -377,3 +377,17 @@ def test_rewrite_constant_pow_matches_pow():
     for e, b, a in zip(exps, before, after):
         np.testing.assert_allclose(a, b, rtol=4e-7, atol=0, err_msg=str(e))
         np.testing.assert_array_equal(a == 0, b == 0)
+
+
+def test_cli_all_writes_every_entry_into_the_directory(tmp_path, monkeypatch, capsys):
+    script = _load_script()
+    # two cheap entries stand in for the registry (the whole registry is exported by the parametrized test above)
+    monkeypatch.setattr(script, "EXPORTABLE", {n: EXPORTABLE[n] for n in ("material", "profile")})
+    assert script.main(["--all", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert (tmp_path / "material.onnx").is_file() and (tmp_path / "profile.onnx").is_file()
+    assert out.count("export shapes") == 2 and out.count("test shapes") == 2 and "max rel diff" in out
+    assert "PASS" in out and "FAIL" not in out
+    with pytest.raises(SystemExit):
+        script.main(["profile", "--all"])
+    assert "either NAME or --all" in capsys.readouterr().err

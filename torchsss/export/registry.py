@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -87,7 +87,6 @@ class ExportCase:
     input_names: tuple[str, ...] | None = None
     slow: bool = False
     material_inputs: bool = False
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def _distances(shape: tuple[int, ...], r_max_mm: float) -> Tensor:
