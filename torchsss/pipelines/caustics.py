@@ -397,7 +397,8 @@ def refractor_paths(module: CausticMap, position: Tensor, normal: Tensor, eye: T
     - ``"double"``: the refracted ray :math:`t_1 = \\text{refract}(v, n, 1/\\eta_c)` (one per channel), whose exit
       point on the back layer (the camera's farthest layer) is found by ``module``'s back-surface search
       (:meth:`CausticMap.through_back`, the same Newton-Raphson/Shah search in the camera-view back positions
-      texture); it leaves along :math:`t_2 = \\text{refract}(t_1, n_b, \\eta_c)`, weighted by
+      texture; where the search loses the ray, Wyman's estimate: the back point behind the pixel, its distance and
+      normal); it leaves along :math:`t_2 = \\text{refract}(t_1, n_b, \\eta_c)`, weighted by
       :math:`(1 - F_r)(1 - F_r^{back})\\, e^{-K_a d}`. Total internal reflection at the back is followed one step:
       the internally reflected ray leaves from the exit point (weight :math:`(1 - F_r) e^{-K_a d}`; the further
       bounces inside are not traced). ``"single"``: :math:`t_1` from the front point, weight :math:`1 - F_r`.
@@ -443,6 +444,23 @@ def refractor_paths(module: CausticMap, position: Tensor, normal: Tensor, eye: T
         x_b, t2, d, found, tir2, n_b = module.through_back(position[None], t1[None], back_position.to(dtype),
                                                            back_normal.to(dtype), back_mask, vp, ior)
         x_b, t2, d, found, tir2, n_b = x_b[0], t2[0], d[0], found[0], tir2[0], n_b[0]
+        # where the search lost the exit (a ray leaving through another layer of a concave object, a silhouette),
+        # Wyman's estimate: the back layer behind the pixel itself, its distance and its normal
+        nan = torch.full_like(back_position, float("nan")).to(dtype)
+        bm = back_mask != 0
+        pb, ok_b = lookup_positions(position[None], torch.where(bm, back_position.to(dtype), nan), vp)
+        nb, _ = lookup_positions(position[None], torch.where(bm, back_normal.to(dtype), nan), vp)
+        d_v = (pb[0] - position).norm(dim=-1)[:, None].expand(m, c)
+        x_v = position[:, None, :] + d_v[..., None] * t1
+        n_v = F.normalize(nb[0], dim=-1, eps=1e-30)[:, None, :].expand(m, c, 3)
+        t2_v, tir_v = refract(t1, n_v, ior)
+        lost = ~found & ok_b[0][:, None]
+        x_b = torch.where(lost[..., None], x_v, x_b)
+        n_b = torch.where(lost[..., None], n_v, n_b)
+        t2 = torch.where(lost[..., None], t2_v, t2)
+        tir2 = torch.where(lost, tir_v, tir2)
+        d = torch.where(lost, d_v, d)
+        found = found | lost
         cos_b = (t1 * n_b).sum(-1).abs()
         f_back = fresnel_reflectance(cos_b, 1.0 / ior)  # from inside: relative index 1 / eta
         t_dir = torch.where(tir2[..., None], reflect(t1, n_b), t2)
