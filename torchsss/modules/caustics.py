@@ -26,9 +26,14 @@ covered grid point :math:`x_f` (front surface, the layer nearest to the light) :
    every receiver are lost, as in Shah; so is a ray whose search *starts* over an empty texel, since the first
    lookup is the receiver seen through the ray's origin: a receiver with holes under the refractor loses the
    rays that leave the refractor above a hole, wherever they would land);
-5. splats the flux of the grid point at the hit point with :func:`~torchsss.ops.caustic_splat.splat_caustics`
-   (energy-conserving Gaussian splats, Shah §5.3.6) into the caustic map, which shares the receivers' texture
-   resolution and the light's ``view_proj``.
+5. deposits the flux of the grid point into the caustic map, which shares the receivers' texture resolution and
+   the light's ``view_proj``: ``splat="beam"`` (default) spreads it over the footprint of the grid texel's beam,
+   interpolated between the hit points of the neighbouring grid points
+   (:func:`~torchsss.ops.caustic_splat.splat_caustic_beams`: the binned irradiance, smooth where beams spread and
+   sharp at a focus; glass sphere at grid 256: 0.7-2.6% relative RMSE against the binned exact irradiance);
+   ``splat="gaussian"`` splats a fixed Gaussian at the hit point (:func:`~torchsss.ops.caustic_splat.
+   splat_caustics`, Shah §5.3.6; gaps and moire where beams spread, blurred foci: 5-45% on the same sphere). Both
+   conserve energy. In eager mode with batch 1 only the covered grid points are traced (traced graphs keep all).
 
 **Flux per grid point** (``flux="texel"``, the default, physical): a grid texel is a pencil of light of
 cross-section :math:`A_\\perp` (the texel's footprint on the plane perpendicular to the light's line of sight

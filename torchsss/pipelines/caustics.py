@@ -32,9 +32,20 @@ Conventions and choices:
   E_\\perp \\max(0, n\\cdot l)` (point light: :math:`I \\max(0, n \\cdot l)/d^2`), V the shadow-map visibility of
   the refractor (the receiver does not shadow itself), :math:`E_{caustic}` the caustic irradiance map sampled
   bilinearly at the pixel's projection into the light view (no light-view occlusion test between receiver parts:
-  meant for floors and walls). Refractor pixels: :math:`F_r(\\cos\\theta_v)\\, L_{env}` — the exact Fresnel
-  reflectance of a uniform environment of radiance ``environment`` (default 0: the refractor is drawn black).
-  Background: 0.
+  meant for floors and walls).
+- **Refractor pixels** (Shah §5.2, ``appearance=True``): :func:`refractor_paths` sends each pixel's view ray into
+  a mirror ray (Fresnel reflectance :math:`F_r(\\cos\\theta_v)`, per channel) and one (``mode="single"``) or two
+  (``"double"``) refractions; the exit point on the back surface is searched in the camera's farthest-layer
+  positions texture with the caustic map's own back-surface search. Both rays then search the receiver with the
+  caustic map's Newton-Raphson search in the receiver's positions texture of a *lookup camera* (the camera widened
+  ``lookup_scale`` times, :func:`lookup_camera`, so rays bent out of the frame still find the floor). A ray that
+  finds the receiver sees the receiver's radiance there (shaded like the receiver pixels: direct light with the
+  refractor's shadow plus the caustic irradiance); one that misses sees the environment (:func:`sky_radiance`: a
+  gradient from ``environment`` at the horizon to ``environment_zenith`` at +z). Pixel radiance:
+  :math:`F_r L_{refl} + (1 - F_r)(1 - F_r^{back}) e^{-K_a d} L_{trans}`, each channel along its own refracted ray
+  (dispersion). Not traced: the object seen in its own reflection, paths with more than two refractions (total
+  internal reflection at the back is followed by one mirror step). ``appearance=False``: :math:`F_r L_{env}` only.
+- **Background**: the environment (0 by default).
 """
 
 from __future__ import annotations
