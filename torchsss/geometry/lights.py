@@ -7,8 +7,9 @@ makes the angle :math:`\\theta` with the direction to the light. A directional l
 translucent material is multiplied by the Fresnel transmittance :math:`F_t(\\eta, \\cos\\theta)` (exact
 unpolarised by default, Schlick optional) and by the light's visibility (1 lit, 0 shadowed).
 
-Lights are small frozen dataclasses of Python floats (they come from scene files); the functions take
-tensors and follow their dtype and device. Point sets are :math:`(B, N, 3)`, channels last.
+Lights are small frozen dataclasses of Python floats (they come from scene files); an intensity (or a directional
+irradiance) may also be a tensor, the differentiable route to fitting a light. The functions take tensors and follow
+their dtype and device. Point sets are :math:`(B, N, 3)`, channels last.
 """
 
 from __future__ import annotations
@@ -47,13 +48,40 @@ def _vec3(value: object, name: str) -> tuple[float, float, float]:
     return out  # type: ignore[return-value]
 
 
-def _rgb(value: object, name: str) -> tuple[float, float, float]:
+def _rgb(value: object, name: str) -> tuple[float, float, float] | Tensor:
+    if isinstance(value, Tensor):
+        return _rgb_tensor(value, name)
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = (value, value, value)
     out = _vec3(value, name)
     if min(out) < 0:
         raise ValueError(f"{name}: expected values >= 0, got {value!r}")
     return out
+
+
+def _rgb_tensor(value: Tensor, name: str) -> Tensor:
+    """A tensor intensity (the differentiable route): :math:`()`, :math:`(1,)` or :math:`(3,)` -> :math:`(3,)`.
+
+    The tensor stays in the autograd graph (a leaf with ``requires_grad`` receives the gradient of a render's loss).
+    """
+    if not value.is_floating_point():
+        raise TypeError(f"{name}: expected a floating tensor, got dtype {value.dtype}")
+    if value.dim() > 1 or (value.dim() == 1 and value.shape[0] not in (1, 3)):
+        raise ValueError(f"{name}: expected a tensor of shape (), (1,) or (3,), got {tuple(value.shape)}")
+    v = value.detach()
+    if not bool(torch.isfinite(v).all()) or bool((v < 0).any()):
+        raise ValueError(f"{name}: expected finite values >= 0, got {v.tolist()}")
+    return value.reshape(-1).expand(3)
+
+
+def _rgb_value(value: tuple[float, float, float] | Tensor, like: Tensor) -> Tensor:
+    """A light's intensity or irradiance as a :math:`(3,)` tensor in ``like``'s dtype and device.
+
+    A tensor keeps its autograd graph.
+    """
+    if isinstance(value, Tensor):
+        return value.to(dtype=like.dtype, device=like.device)
+    return torch.tensor(value, dtype=like.dtype, device=like.device)
 
 
 def _unit(value: object, name: str) -> tuple[float, float, float]:
@@ -70,7 +98,10 @@ class PointLight:
 
     Args:
         position: (x, y, z) in mm.
-        intensity: per-channel radiant intensity (a number is used for all three channels).
+        intensity: per-channel radiant intensity (a number is used for all three channels), or a floating tensor of
+            shape :math:`()`, :math:`(1,)` or :math:`(3,)`: the differentiable route (a tensor with
+            ``requires_grad`` receives the gradient of a render's loss through every method's irradiance; a light
+            holding a tensor cannot be compared with ``==``).
 
     Examples:
         >>> PointLight(position=(0, 0, 100), intensity=(1e4, 1e4, 1e4)).kind
@@ -92,7 +123,8 @@ class DirectionalLight:
 
     Args:
         direction: the direction the light travels (from the light towards the scene); normalised.
-        irradiance: per-channel irradiance on a surface facing the light.
+        irradiance: per-channel irradiance on a surface facing the light (numbers, or a tensor as a point light's
+            ``intensity``: the differentiable route).
     """
 
     direction: tuple[float, float, float]
@@ -114,7 +146,7 @@ class SpotLight:
     Args:
         position: (x, y, z) in mm.
         direction: cone axis, pointing away from the light; normalised.
-        intensity: per-channel radiant intensity on the axis.
+        intensity: per-channel radiant intensity on the axis (numbers, or a tensor as :class:`PointLight`'s).
         cone_deg: outer half-angle in degrees, in (0, 90].
         inner_deg: inner half-angle in degrees, in [0, cone_deg]; defaults to 0.8 * cone_deg.
     """
@@ -217,7 +249,7 @@ def incident_light(light: Light, points: Tensor) -> tuple[Tensor, Tensor, Tensor
     if isinstance(light, DirectionalLight):
         to_light = -torch.tensor(light.direction, dtype=dtype, device=device).expand_as(points)
         dist = torch.full(points.shape[:-1], math.inf, dtype=dtype, device=device)
-        e = torch.tensor(light.irradiance, dtype=dtype, device=device).expand(*points.shape[:-1], 3)
+        e = _rgb_value(light.irradiance, points).expand(*points.shape[:-1], 3)
         return to_light, dist, e
     if not isinstance(light, (PointLight, SpotLight)):
         raise TypeError(f"light: expected PointLight, DirectionalLight or SpotLight, got {type(light).__name__}")
@@ -234,7 +266,7 @@ def incident_light(light: Light, points: Tensor) -> tuple[Tensor, Tensor, Tensor
         falloff = falloff * _smoothstep(
             math.cos(math.radians(light.cone_deg)), math.cos(math.radians(light.inner_deg)), cos_axis
         )
-    e = torch.tensor(light.intensity, dtype=dtype, device=device) * falloff.unsqueeze(-1)
+    e = _rgb_value(light.intensity, points) * falloff.unsqueeze(-1)
     return to_light, dist, e
 
 

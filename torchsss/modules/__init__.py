@@ -2,6 +2,7 @@
 
 from torchsss.modules.caustics import CausticMap
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
+from torchsss.modules.heterogeneous import HeterogeneousMaps, edge_smoothness
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
 from torchsss.modules.material import (
     POSITIVE_FLOOR,
@@ -23,6 +24,7 @@ __all__ = [
     "DipoleMaterial",
     "DipoleProfile",
     "GlobalResponse",
+    "HeterogeneousMaps",
     "HybridTranslucency",
     "IcdfSampler",
     "ImportanceSampledTranslucency",
@@ -33,5 +35,6 @@ __all__ = [
     "SplatTranslucency",
     "TabulatedMaterial",
     "check_profile",
+    "edge_smoothness",
     "material_module",
 ]
