@@ -235,8 +235,9 @@ def fit(renderer, lights, cameras: list[Camera], targets: list[Tensor], *, steps
         rebuild_every: steps between rebuilds.
 
     Returns:
-        ``{"loss": [...], "params": [...], "rebuilds": n, "renderer": the last renderer}``: the loss before every
-        step and the parameters after the last.
+        ``{"loss": [...], "params": {...}, "trace": [...], "rebuilds": n, "renderer": the last renderer}``: the loss
+        before every step, the parameters after the last, and per step the parameters after it with the wall time
+        since the start (``{"sigma_a", "sigma_s_prime", "eta", "t_s"}``).
     """
     mat = renderer.material
     params = [mat.log_sigma_tr, mat.log_albedo_ratio] + ([mat.raw_eta] if fit_eta else [])
@@ -250,7 +251,7 @@ def fit(renderer, lights, cameras: list[Camera], targets: list[Tensor], *, steps
         from tqdm import tqdm
 
         bar = tqdm(bar, desc=f"fit ({renderer.method})", unit="step", file=sys.stdout)
-    rebuilds = 0
+    rebuilds, trace, t0 = 0, [], time.perf_counter()
     with torchsss.validation(False):
         for step in bar:
             if rebuild is not None and step > 0 and step % rebuild_every == 0:
@@ -265,11 +266,12 @@ def fit(renderer, lights, cameras: list[Camera], targets: list[Tensor], *, steps
             opt.step()
             sched.step()
             history.append(float(loss.detach()))
+            trace.append({**_params(mat), "t_s": time.perf_counter() - t0})
             if progress:
                 bar.set_postfix(loss=f"{history[-1]:.3e}")
     if rebuild is not None:
         renderer, rebuilds = rebuild(), rebuilds + 1
-    return {"loss": history, "params": _params(mat), "rebuilds": rebuilds, "renderer": renderer}
+    return {"loss": history, "params": _params(mat), "trace": trace, "rebuilds": rebuilds, "renderer": renderer}
 
 
 def _side_by_side(path: Path, rows: list[list[Tensor]], scale: int = 4) -> None:
@@ -432,7 +434,7 @@ def main(argv=None) -> dict:
            "rebuilds": result["rebuilds"], "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "parameterisation": "log sigma_tr, log(sigma_s'/sigma_a), log eta",
            "initial": initial, "fitted": result["params"],
-           "loss": result["loss"] + [final_loss],
+           "loss": result["loss"] + [final_loss], "trace": result["trace"],
            "time_s": {"targets": t_targets, "setup": t_setup, "fit": t_fit, "fit_cpu": cpu_fit,
                       "per_step": t_fit / args.steps, "total": time.perf_counter() - t_start}}
     if target_material is not None:
