@@ -647,6 +647,8 @@ def test_caustic_map_gradcheck():
 
     i = torch.tensor([[1.3]], dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(by_intensity, (i,))
+    beam = CausticMap(1.5, 0.02)  # the default beam splats
+    assert torch.autograd.gradcheck(lambda x: beam(*gb, floor, DOWN, x, vp), (i,))
     z = torch.zeros(1, 1, 12, 12, dtype=F64, requires_grad=True)
     assert float(by_floor_height(z.detach()).sum()) > 0  # the map is not empty, so the check has content
     assert torch.autograd.gradcheck(by_floor_height, (z,), eps=1e-6, atol=1e-6)
