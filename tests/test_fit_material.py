@@ -58,12 +58,16 @@ def test_tiny_fit_end_to_end(tmp_path):
         "camera": {"eye": [0, 10, 60], "target": [0, 0, 0], "fov_deg": 25, "width": 16, "height": 16}}))
     out = tmp_path / "fit.json"
     res = fit_material.main([str(scene), "--target-material", "potato", "--views", "2", "--size", "16", "--steps",
-                             "4", "--rebuild-every", "2", "--no-progress", "--json", str(out), "--save-targets"])
+                             "4", "--rebuild-every", "2", "--no-progress", "--json", str(out), "--save-targets",
+                             "--sensitivity"])
     saved = json.loads(out.read_text())
     assert saved["fitted"] == res["fitted"] and saved["method"] == "splat" and saved["rebuilds"] == 2
     assert len(saved["loss"]) == 5 and saved["loss"][-1] < saved["loss"][0]
     assert set(saved["relative_error"]) == {"sigma_a", "sigma_s_prime", "eta"}
     assert saved["fitted"]["eta"] == pytest.approx(1.3, rel=1e-6)  # held
+    sen = saved["sensitivity"]  # what the images tell apart: every coefficient moves its channel
+    assert all(0 < x < 1 for x in sen["sigma_a"] + sen["sigma_s_prime"]) and len(sen["method_error"]) == 3
+    assert sen["sigma_a"][2] > sen["sigma_a"][0]  # potato's blue absorbs 50x more than its red: more visible
     for name in ("fit_loss.png", "fit_side_by_side.png", "fit_target0.exr", "fit_target1.exr"):
         assert (tmp_path / name).is_file(), name
     # the EXR targets are accepted as input (the same views), and fit from there
