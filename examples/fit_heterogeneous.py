@@ -105,6 +105,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--size", type=int, default=32)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--lr", type=float, default=0.08)
+    p.add_argument("--oversample", type=float, default=1.0, help="splat light-view oversampling")
     p.add_argument("--smooth", type=float, default=0.5, help="weight of the edge smoothness regulariser")
     p.add_argument("--learn-irradiance", action="store_true", help="learn M_i too")
     p.add_argument("--threads", type=int, default=None)
@@ -127,7 +128,7 @@ def main(argv=None) -> dict:
     t_targets = time.perf_counter() - t_start
     maps = HeterogeneousMaps(mesh, 1, learn_irradiance=args.learn_irradiance)
     renderer = build("splat", mesh, args.material, differentiable=True, splat_method="window",
-                     distance_scale=torch.ones(mesh.vertices.shape[0]))
+                     oversample=args.oversample, distance_scale=torch.ones(mesh.vertices.shape[0]))
     renderer.material.requires_grad_(False)  # the base material is known; only the maps are learned
 
     def render(c: Camera) -> Tensor:
@@ -168,7 +169,8 @@ def main(argv=None) -> dict:
         return float(((a - md_true)[sel] ** 2).mean().sqrt())
 
     out = {"material": args.material, "vertices": int(mesh.vertices.shape[0]), "views": len(cams),
-           "size": args.size, "steps": args.steps, "lr": args.lr, "smooth": args.smooth, "density": args.density,
+           "size": args.size, "oversample": args.oversample, "steps": args.steps, "lr": args.lr,
+           "smooth": args.smooth, "density": args.density,
            "stripe_mm": args.stripe_mm, "seen_vertices": int(seen.sum()),
            "map_rms_error": {"initial": rms(torch.ones_like(md_true), seen), "fitted": rms(md_fit, seen)},
            "mean_md": {"stripe": float(md_fit[stripe & seen].mean()), "outside": float(md_fit[~stripe & seen].mean()),

@@ -14,8 +14,9 @@ view sees the object lit from another side (back-lit, side-lit, front-lit): ``--
 ``--targets`` EXR file (linear radiance as ``python -m torchsss render`` writes it, view k = the k-th file; its
 resolution is the camera's).
 
-**Method.** The fit renders through ``splat`` (Shah's image-space splatting) by default, with the splat budget that
-:func:`torchsss.plan.plan` picks for ``--tolerance`` among the splat configurations (``frames`` = steps x views).
+**Method.** The fit renders through ``splat`` (Shah's image-space splatting) at ``--eps`` 0.01 and ``--oversample``
+1 by default (window form), or with the splat budget :func:`torchsss.plan.plan` picks for ``--tolerance`` among the
+splat configurations (``frames`` = steps x views; at 5% it picks eps 0.003, oversample 2, 3-4x the cost per step).
 Why splat and not the planner's unrestricted pick or Lensch: at the small images a fit uses, the planner's
 cheapest configuration is a coarse reference (its speed comes from the fused all-pairs kernel, which runs in
 inference only: under autograd it is the eager integrator) and fitting with the targets' own integrator would be
@@ -50,18 +51,19 @@ along the valley. The loss is the mean over views of the relative squared error
   dipole's near field; at 48 x 48 a pixel of the default scene spans about 0.8 mm, so sigma_s' is determined mostly
   through :math:`\\alpha'` and :math:`\\sigma_{tr}`, not through the shape of the near field.
 - *Weak absorption.* When :math:`\\sigma_a \\ll \\sigma_s'` (potato's red and green: 0.0024 and 0.009 mm^-1 against
-  0.7) the image depends on sigma_a through :math:`\\sigma_{tr} \\propto \\sqrt{\\sigma_a}` and through
-  :math:`R_d`, whose derivative with respect to sigma_a is large (:math:`\\partial R_d/\\partial\\sigma_a \\propto
-  1/\\sqrt{\\sigma_a}`) only while :math:`1/\\sigma_{tr}` (14 mm in red) is not much larger than the object: on a
-  40 mm object it is still visible; on a 5 mm object sigma_a in red would not be identifiable (the light leaves
-  before it is absorbed, whatever sigma_a is).
+  0.7) the image depends on sigma_a only weakly, and less the larger :math:`1/\\sigma_{tr}` (14 mm in red) is
+  against the object (the light leaves before it is absorbed). ``--sensitivity`` measures it: on the default scene
+  (potato, 3 views at 48 x 48) +10% of sigma_a changes the reference images by 0.72% (red), 1.6% (green) and 4.9%
+  (blue) in that channel, +10% of sigma_s' by 3.8%, 4.0% and 6.1%.
+- *The fast method's own error.* The fitted parameters absorb the renderer's error against the reference: at the
+  true potato, splat (eps 0.01) is 4.2%, 4.9%, 7.4% off per channel (relative L2 over the views) at oversample 1
+  and 1.65%, 1.8%, 2.5% at oversample 2. A coefficient whose 10% change moves its images by less than that error
+  (potato's red sigma_a: 0.72% against 1.65%) cannot be recovered to 10% through splat at that budget: the fit
+  matches the splat error by moving it. The same in red on the spot at 20 mm (``benchmarks/results/fit.md``:
+  red sigma_a 236% off, the other coefficients 0-26%).
 - *eta.* eta enters the Fresnel transmittances in and out and the dipole's boundary term A; its effect is close to
   a change of overall brightness, which trades off against the albedo, so ``--fit-eta`` is off by default (the
   fit holds eta at the target's, 1.3 for all Jensen presets).
-- *The fast method's own error.* The fitted parameters absorb the renderer's bias against the reference
-  (splat: the r_max truncation and the light-view sampling, 1-3% relative RMSE): a material for which the splat
-  image is x% off is recovered with an error of order x% divided by the image's relative sensitivity to the
-  parameter.
 
 Outputs (``--out DIR``, default beside ``--json``): ``loss.png`` (the loss curve), ``side_by_side.png`` (rows:
 views; columns: target, initial, fitted; one exposure per row, from the target) and the JSON (``--json``): the
