@@ -391,3 +391,64 @@ def test_cli_all_writes_every_entry_into_the_directory(tmp_path, monkeypatch, ca
     with pytest.raises(SystemExit):
         script.main(["profile", "--all"])
     assert "either NAME or --all" in capsys.readouterr().err
+
+
+# -- adapters: typed errors and the truncation count in eager mode ----------------------------------------------
+def test_count_truncated_agrees_with_splat_window_size():
+    from torchsss.export.registry import _splat_inputs
+    from torchsss.ops.splat import splat_window_size
+
+    module = SplatTranslucency(DipoleMaterial.from_preset("skin1"), window=9)
+    reach = float(module.r_max)
+    seen = set()
+    for size in (6, 8, 12, 20, 40, 80):
+        src, _, dst, _, vp = _splat_inputs(1, size, size, 0)  # one splat: the count is 0 or 1
+        need = splat_window_size(src, vp, reach, size, size)
+        got = int(module.count_truncated(src, dst, vp)[0])
+        assert got == int(need > 9 and size > 9), (size, need, got)
+        seen.add(got)
+    assert seen == {0, 1}  # both sides of the boundary were exercised
+    # a window as large as the image never truncates, whatever the footprint
+    src, _, dst, _, vp = _splat_inputs(5, 15, 15, 1)
+    assert int(module.count_truncated(src, dst, vp, window=15)[0]) == 0 < int(module.count_truncated(src, dst, vp)[0])
+    with pytest.raises(ValueError, match=r"window: expected an odd int \(the module has none\), got None"):
+        SplatTranslucency(DipoleMaterial.from_preset("skin1")).count_truncated(src, dst, vp)
+
+
+def test_adapters_reject_bad_modules():
+    from torchsss.export import SplatExport, with_material_inputs
+
+    with pytest.raises(TypeError, match=r"module: expected a SplatTranslucency, got DipoleProfile"):
+        SplatExport(DipoleProfile())
+    with pytest.raises(ValueError, match=r"window=K"):
+        SplatExport(SplatTranslucency(DipoleMaterial.from_preset("skin1")))
+    two = SplatTranslucency([DipoleMaterial.from_preset("skin1"), DipoleMaterial.from_preset("marble")], window=5)
+    with pytest.raises(ValueError, match=r"expected one material, got a table of 2"):
+        SplatExport(two)
+    with pytest.raises(ValueError, match=r"expected exactly one DipoleMaterial .* got 0"):
+        with_material_inputs(DipoleProfile())
+    with pytest.raises(ValueError, match=r"expected exactly one DipoleMaterial .* got 2"):
+        with_material_inputs(two)
+    with pytest.raises(ValueError, match=r"inputs: expected distinct identifiers"):
+        with_material_inputs(DipoleMaterial.from_preset("skin1"), inputs=("eta",))
+    m = SplatExport(SplatTranslucency(DipoleMaterial.from_preset("skin1"), window=5), material_inputs=True)
+    from torchsss.export.registry import _splat_inputs
+
+    with pytest.raises(ValueError, match=r"r_max: expected tensors \(material_inputs=True\), got None"):
+        m(*_splat_inputs(3, 8, 8, 0))
+
+
+def test_material_inputs_wrapper_leaves_the_module_alone_and_follows_its_inputs():
+    from torchsss.export import with_material_inputs
+
+    mat = DipoleMaterial.from_preset("skin1")
+    wrapped = with_material_inputs(mat)
+    r = torch.linspace(0, 20, 50).reshape(-1, 1)
+    for name in MATERIAL_PRESETS:
+        with torch.no_grad():
+            got = wrapped(r, *material_inputs(name))
+            want = DipoleMaterial.from_preset(name)(r)
+        torch.testing.assert_close(got, want, rtol=2e-6, atol=0)
+    assert isinstance(mat, DipoleMaterial) and type(mat) is DipoleMaterial  # the original is not swapped
+    with torch.no_grad():
+        torch.testing.assert_close(mat(r), DipoleMaterial.from_preset("skin1")(r))

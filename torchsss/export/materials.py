@@ -131,13 +131,17 @@ def with_material_inputs(module: nn.Module, inputs: tuple[str, ...] | None = Non
     Raises:
         ValueError: the module tree holds no :class:`~torchsss.DipoleMaterial` or several distinct ones.
     """
+    clone = copy.deepcopy(module)
+    old = find_dipole_material(clone)
     names = list(_required_inputs(module) if inputs is None else inputs)
     names += ["sigma_a", "sigma_s_prime", "eta"]
     if any(not n.isidentifier() or keyword.iskeyword(n) for n in names) or len(set(names)) != len(names):
         raise ValueError(f"inputs: expected distinct identifiers, got {names}")
-    clone = copy.deepcopy(module)
-    old = find_dipole_material(clone)
-    swap_material(clone, old, InputDipoleMaterial(old))
+    new = InputDipoleMaterial(old)
+    if clone is old:  # the module is the material itself
+        clone = new
+    else:
+        swap_material(clone, old, new)
     ns: dict = {}
     exec(f"def forward(self, {', '.join(names)}):\n    return self._call({', '.join(names)})\n", ns)
     ns["forward"].__doc__ = MaterialInputs.forward.__doc__
