@@ -98,8 +98,10 @@ def test_rule_decimate_atlas_methods():
     target = detail_faces(f)
     assert target is not None and 2000 <= target <= f.faces // 2
     p = plan(s, 0.2, methods=["icdf"], mesh=mesh)
-    assert p.method == "icdf" and p.decimate == target and "decimate" in p.reasons
-    assert any("mesh detail" in x for x in p.skipped)
+    # the atlas is built on the decimated mesh; the camera sees the full one
+    assert p.method == "icdf" and p.knobs["source_faces"] == target and p.decimate is None
+    assert "decimate" in p.reasons and "camera sees the full mesh" in p.reasons["decimate"]
+    assert any("detail beyond" in x for x in p.skipped)
     # a coarse mesh is kept
     assert detail_faces(SceneFacts.from_scene(s, sphere(10.0, 2))) is None
 

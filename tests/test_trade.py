@@ -56,8 +56,8 @@ def test_sweep_configs_span_and_decimate():
     for method in ("reference", "splat", "icdf", "hybrid", "lensch"):
         full, quick = sweep_configs(method), sweep_configs(method, quick=True)
         assert len(quick) < len(full) or (method == "reference" and len(quick) == 1)
-    assert all(c["decimate"] == 20000 for c in sweep_configs("icdf", faces=70000))
-    assert all("decimate" not in c for c in sweep_configs("splat", faces=70000))
+    assert all(c["source_faces"] == 20000 for c in sweep_configs("icdf", faces=70000))
+    assert all("source_faces" not in c and "decimate" not in c for c in sweep_configs("splat", faces=70000))
     with pytest.raises(ValueError, match="method"):
         sweep_configs("caustics")
     glass = Scene.from_dict({**SCENE, "caustics": {"ior": 1.5}})

@@ -415,6 +415,8 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     """
     m = {**MODEL, **(model or {})}
     prof = _Profile.of(material)
+    if method in ATLAS_METHODS and knobs.get("source_faces"):  # built on the decimated mesh, camera on the full one
+        decimate = int(knobs["source_faces"])
     faces = decimate or facts.faces
     dec_s = m["decimate_s_face"] * facts.faces if decimate else 0.0
     px, lights = facts.covered_px, facts.lights
@@ -557,6 +559,11 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                               f"blending skipped: even an 11 x 11 kernel reaches only {reach:.2f} median edges "
                               f"(< {BLEND_MIN_REACH})")
                 out.append({"method": method, "knobs": {"atlas_resolution": res}, "decimate": decimate, "rules": r})
+    for cand in out:  # the atlas methods build on the decimated mesh; the camera sees the full one
+        if cand["method"] in ATLAS_METHODS and cand["decimate"]:
+            cand["knobs"] = {**cand["knobs"], "source_faces": int(cand["decimate"])}
+            cand["decimate"] = None
+            cand["rules"]["decimate"] += " (atlas and precompute; the camera sees the full mesh)"
     return out
 
 

@@ -63,9 +63,10 @@ def applicable_methods(scene: Scene) -> list[str]:
 def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[dict]:
     """The knob configurations the sweep renders for ``method``, from large error to below 1%.
 
-    Each configuration is a dict of renderer knobs; ``"decimate"`` (a face count) is the scene's decimation, added
-    for the atlas methods when the mesh has more than :data:`ATLAS_FACES` faces. ``quick`` keeps a few points per
-    method (about a minute on the default scene at 64 x 64).
+    Each configuration is a dict of renderer knobs; the atlas methods get ``"source_faces"`` (their atlas and
+    precompute on the mesh decimated to :data:`ATLAS_FACES` faces; the camera sees the full mesh) when the mesh has
+    more faces than that. (``"decimate"``, the scene's decimation, is understood by :func:`run_config` too.)
+    ``quick`` keeps a few points per method (about a minute on the default scene at 64 x 64).
 
     * reference: ``eps`` 0.3, 0.1, 0.03 (the sample spacing's tolerance; the truth uses 0.01).
     * splat: ``eps`` 0.1, 0.03, 0.01, 0.003 (the splat budget, Shah eq. 6.16-6.18) and ``oversample`` 1 and 2.
@@ -93,7 +94,7 @@ def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[d
         raise ValueError(f"method: expected one of {sorted(grids)}, got {method!r}")
     configs = [dict(c) for c in grids[method]]
     if method in ATLAS_METHODS and faces > ATLAS_FACES:
-        configs = [{**c, "decimate": ATLAS_FACES} for c in configs]
+        configs = [{**c, "source_faces": ATLAS_FACES} for c in configs]
     return configs
 
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsss.geometry.atlas import Atlas, build_atlas
-from torchsss.geometry.atlas_frame import camera_uv, irradiance_atlas
+from torchsss.geometry.atlas_frame import irradiance_atlas
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import Light
@@ -33,6 +33,7 @@ from torchsss.modules.material import material_module
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
+from torchsss.pipelines.atlas_view import AtlasView, source_mesh
 from torchsss.pipelines.renderer import Renderer, RenderResult
 from torchsss.pipelines.specular import shadow_mapped_specular
 
@@ -180,32 +181,37 @@ class IcdfRenderer(Renderer):
         shadow_resolution: size of each light's shadow map for the irradiance atlas.
         specular: add the shadow-mapped GGX boundary reflection.
         roughness: GGX alpha of ``specular``.
+        source_faces: build the atlas on the mesh decimated to about this many faces while the camera sees the
+            full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
     """
 
     method = "icdf"
     hybrid = False
     defaults: ClassVar[dict] = dict(samples=4096, atlas_resolution=512, seed=0, sobol=True, levels=None,
                                     max_pairs=DEFAULT_MAX_PAIRS, shadow_resolution=1024, specular=False,
-                                    roughness=0.3)
+                                    roughness=0.3, source_faces=None)
 
     def _build(self) -> None:
         k = self.knobs
-        self.built = build_icdf(self.mesh, self.material, atlas_resolution=k["atlas_resolution"], levels=k["levels"],
-                                max_pairs=k["max_pairs"], progress=self.progress)
+        self.source_mesh = source_mesh(self.mesh, k["source_faces"])
+        self.built = build_icdf(self.source_mesh, self.material, atlas_resolution=k["atlas_resolution"],
+                                levels=k["levels"], max_pairs=k["max_pairs"], progress=self.progress)
         self.atlas, self.module = self.built.atlas, self.built.module
+        self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, eta = self.knobs, self.mesh, self.eta
         gbuf = camera_gbuffer(mesh, camera)
         dtype, device = mesh.vertices.dtype, mesh.vertices.device
         t0 = time.perf_counter()
-        e = irradiance_atlas(mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"]).to(dtype)
+        e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta,
+                             shadow_resolution=k["shadow_resolution"]).to(dtype)
         t1 = time.perf_counter()
         u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
         mask = gbuf.mask[0, 0]
         receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
         if self.hybrid:
-            uv, _ = camera_uv(mesh, self.atlas, camera)
+            uv = self.view.uv(camera, gbuf.position, gbuf.mask)
             rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
             b = self.module(e, u, receivers, rec_uv)
         else:
@@ -243,11 +249,13 @@ class HybridRenderer(IcdfRenderer):
 
     def _build(self) -> None:
         k = self.knobs
-        self.built = build_hybrid(self.mesh, self.material, atlas_resolution=k["atlas_resolution"], rings=k["rings"],
-                                  per_ring=k["per_ring"], c=k["c"], k=k["k"], local_eps=k["local_eps"],
-                                  levels=k["levels"], max_pairs=k["max_pairs"], max_reach=k["max_reach"],
-                                  progress=self.progress)
+        self.source_mesh = source_mesh(self.mesh, k["source_faces"])
+        self.built = build_hybrid(self.source_mesh, self.material, atlas_resolution=k["atlas_resolution"],
+                                  rings=k["rings"], per_ring=k["per_ring"], c=k["c"], k=k["k"],
+                                  local_eps=k["local_eps"], levels=k["levels"], max_pairs=k["max_pairs"],
+                                  max_reach=k["max_reach"], progress=self.progress)
         self.atlas, self.module = self.built.atlas, self.built.module
+        self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
 
 
 def _frame(cls: type[IcdfRenderer], mesh: Mesh, material, lights, camera, *, samples: int, dtype: torch.dtype,

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from torchsss.geometry.atlas import Atlas, build_atlas
-from torchsss.geometry.atlas_frame import camera_uv, irradiance_atlas
+from torchsss.geometry.atlas_frame import irradiance_atlas
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lensch import (
@@ -37,6 +37,7 @@ from torchsss.modules.lensch import GlobalResponse, LenschTranslucency, LocalRes
 from torchsss.modules.material import material_module
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
+from torchsss.pipelines.atlas_view import AtlasView, source_mesh
 from torchsss.pipelines.renderer import Renderer, RenderResult
 from torchsss.pipelines.specular import shadow_mapped_specular
 
@@ -115,12 +116,15 @@ class LenschRenderer(Renderer):
         shadow_resolution: size of each light's shadow map for the irradiance atlas.
         specular: add the shadow-mapped GGX boundary reflection.
         roughness: GGX alpha of ``specular``.
+        max_entries: cap of the vertex throughput's entries (ValueError beyond it).
+        source_faces: build the atlas, kernels and throughput on the mesh decimated to about this many faces
+            while the camera sees the full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
     """
 
     method = "lensch"
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
                                     blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
-                                    max_entries=MAX_THROUGHPUT_ENTRIES)
+                                    max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None)
 
     @classmethod
     def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
@@ -130,24 +134,26 @@ class LenschRenderer(Renderer):
 
     def _build(self) -> None:
         k = self.knobs
-        self.built = build_lensch(self.mesh, self.material, resolution=k["atlas_resolution"],
+        self.source_mesh = source_mesh(self.mesh, k["source_faces"])
+        self.built = build_lensch(self.source_mesh, self.material, resolution=k["atlas_resolution"],
                                   kernel_size=k["kernel_size"], threshold=k["threshold"], relative=k["relative"],
                                   blend=k["blend"], max_entries=k["max_entries"], progress=self.progress)
         k["kernel_size"] = int(self.built.module.local.kernel_size)
         k["blend"] = self.built.module.direct is not None
         self.module = self.built.module
         self.atlas = self.built.atlas
+        self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, eta = self.knobs, self.mesh, self.eta
         gbuf = camera_gbuffer(mesh, camera)
         t0 = time.perf_counter()
-        e = irradiance_atlas(mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"])
+        e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"])
         t1 = time.perf_counter()
         b_atlas = self.module(e)
         t2 = time.perf_counter()
-        uv, mask = camera_uv(mesh, self.atlas, camera)
-        b = self.atlas.sample(b_atlas, uv) * mask
+        mask = gbuf.mask
+        b = self.atlas.sample(b_atlas, self.view.uv(camera, gbuf.position, mask)) * mask
         cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
         radiance = exit_radiance(b, cos_o, eta) * mask
         if k["specular"]:

@@ -36,7 +36,7 @@ from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import DirectionalLight, Light, surface_irradiance
-from torchsss.geometry.mesh import Mesh, decimate
+from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.sampling import SurfaceSamples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
@@ -45,6 +45,7 @@ from torchsss.modules.material import material_module
 from torchsss.ops.reference import reference_radiosity
 from torchsss.physics.fresnel import check_fresnel, exit_radiance
 from torchsss.physics.materials import Material
+from torchsss.pipelines.atlas_view import source_mesh
 from torchsss.pipelines.coarse import coarse_receivers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_dtype, check_lights, check_objects
 from torchsss.pipelines.specular import specular_radiance
@@ -223,13 +224,7 @@ class ReferenceRenderer(Renderer):
 
     def _build(self) -> None:
         k = self.knobs
-        self.source_mesh = self.mesh
-        if k["source_faces"] is not None:
-            n = k["source_faces"]
-            if isinstance(n, bool) or not isinstance(n, int) or n < 4:
-                raise ValueError(f"source_faces: expected an int >= 4 or None, got {n!r}")
-            if n < self.mesh.num_faces:
-                self.source_mesh = decimate(self.mesh, n)
+        self.source_mesh = source_mesh(self.mesh, k["source_faces"])
         self.fresnel = check_fresnel(k["fresnel"], ("exact", "schlick"))
         if k["shadows"] not in _SHADOWS:
             raise ValueError(f"shadows: expected one of {_SHADOWS}, got {k['shadows']!r}")

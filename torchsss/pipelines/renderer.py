@@ -29,6 +29,7 @@ from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
 from torchsss.physics.materials import Material
+from torchsss.pipelines.atlas_view import AtlasView
 
 __all__ = ["RenderResult", "Renderer", "box_downsample", "check_dtype", "check_lights", "check_objects",
            "supersample_camera"]
@@ -181,6 +182,9 @@ class Renderer:
         self.progress = False
         self.knobs = {**cls.defaults, **knobs}
         self.mesh, self.built, self.atlas, self.module = built.mesh, built, built.atlas, built.module
+        self.source_mesh = built.mesh
+        self._supersample = 1
+        self.view = AtlasView(built.mesh, built.mesh, built.atlas)
         self.device = built.mesh.vertices.device
         self.material = built.module.material
         self.setup_s = float(built.stats.get("t_precompute_s", 0.0))

@@ -1,0 +1,90 @@
+"""Closest points on a decimated mesh (torchsss.geometry.transfer) and atlas methods that see the full mesh."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchsss.geometry import Camera, PointLight, decimate, sphere
+from torchsss.geometry.transfer import SurfaceLocator, closest_point_on_triangle, transferred_uv
+from torchsss.pipelines.build import build
+from torchsss.trade import image_error
+
+
+def _brute_closest(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, n: int = 200) -> torch.Tensor:
+    """Distance from each point to a dense barycentric lattice of each triangle (an upper bound, tight to ~1/n)."""
+    i, j = torch.meshgrid(torch.arange(n + 1.0), torch.arange(n + 1.0), indexing="ij")
+    keep = i + j <= n
+    v, w = (i[keep] / n).double(), (j[keep] / n).double()
+    pts = a[:, None] + v[None, :, None] * (b - a)[:, None] + w[None, :, None] * (c - a)[:, None]  # (T, L, 3)
+    return (pts - p[:, None]).norm(dim=-1).amin(1)
+
+
+def test_closest_point_on_triangle_against_a_dense_lattice():
+    g = torch.Generator().manual_seed(0)
+    a, b, c = (torch.randn(100, 3, generator=g, dtype=torch.float64) for _ in range(3))
+    c[:20] = a[:20] + 0.5 * (b[:20] - a[:20])  # degenerate: collinear corners
+    c[20:30] = a[20:30]  # degenerate: two equal corners
+    p = 2.0 * torch.randn(100, 3, generator=g, dtype=torch.float64)
+    bary = closest_point_on_triangle(p, a, b, c)
+    assert bool((bary >= -1e-12).all()) and torch.allclose(bary.sum(-1), torch.ones(100, dtype=torch.float64))
+    got = (p - (bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c)).norm(dim=-1)
+    want = _brute_closest(p, a, b, c)
+    assert bool((got <= want + 1e-12).all())  # never farther than any point of the triangle
+    assert float((want - got).max()) < 0.04  # and the lattice converges to it
+
+
+def test_locator_is_exact_against_all_faces():
+    fine, coarse = sphere(10.0, 4, dtype=torch.float64), decimate(sphere(10.0, 4, dtype=torch.float64), 200)
+    pts = torch.cat([fine.vertices[::7], 15.0 * torch.randn(50, 3, dtype=torch.float64)])
+    tri = coarse.vertices[coarse.faces]
+    bary = closest_point_on_triangle(pts[:, None], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    dist = ((bary[..., None] * tri[None]).sum(-2) - pts[:, None]).norm(dim=-1)
+    every = SurfaceLocator(coarse, candidates=coarse.num_faces).locate(pts)
+    torch.testing.assert_close(every.distance, dist.amin(1))
+    near = SurfaceLocator(coarse).locate(pts[: fine.vertices[::7].shape[0]])  # points on the fine surface
+    torch.testing.assert_close(near.distance, dist.amin(1)[: near.distance.shape[0]], rtol=0, atol=1e-9)
+    point = (near.bary[:, :, None] * tri[near.face]).sum(1)
+    torch.testing.assert_close((point - pts[: point.shape[0]]).norm(dim=-1), near.distance)
+
+
+def test_locator_rejects_bad_input():
+    loc = SurfaceLocator(sphere(5.0, 1))
+    with pytest.raises(ValueError, match="candidates"):
+        SurfaceLocator(sphere(5.0, 1), candidates=0)
+    with pytest.raises(TypeError, match="points"):
+        loc.locate(torch.zeros(4, 3, dtype=torch.int64))
+    with pytest.raises(ValueError, match="points: expected shape"):
+        loc.locate(torch.zeros(4, 2))
+    assert loc.locate(torch.zeros(0, 3)).face.shape == (0,)
+    with pytest.raises(ValueError, match="face_uvs"):
+        transferred_uv(loc, torch.zeros(3, 3, 2), torch.zeros(1, 3, 2, 2), torch.ones(1, 1, 2, 2, dtype=torch.bool))
+
+
+@pytest.fixture(scope="module")
+def side_lit_sphere():
+    mesh = sphere(8.0, 4)
+    cam = Camera(eye=(0, 4.0, 30.0), target=(0, 0, 0), width=24, height=24, fov_deg=40.0)
+    lights = [PointLight((25.0, 10.0, 5.0), 900.0)]
+    return mesh, cam, lights, build("reference", mesh, "skin1").render(lights, cam)
+
+
+@pytest.mark.parametrize("method", ["icdf", "hybrid"])
+def test_atlas_method_on_a_decimated_source_sees_the_full_mesh(method, side_lit_sphere):
+    """``source_faces``: atlas on 160 faces, camera on the 5,120-face sphere: its silhouette and a lower error.
+
+    Measured (skin1, 8 mm sphere, side light, 32x32, N = 8192): icdf 7.7% -> 4.5%, hybrid 8.0% -> 4.0% relative
+    RMSE; here (24x24, N = 4096, atlas 96) icdf 7.8% -> 5.2%
+    (against the reference), rendering the full mesh instead of the decimated one.
+    """
+    mesh, cam, lights, ref = side_lit_sphere
+    knobs = {"atlas_resolution": 96, "samples": 4096}
+    old = build(method, decimate(mesh, 160), "skin1", **knobs).render(lights, cam)
+    r = build(method, mesh, "skin1", source_faces=160, **knobs)
+    new = r.render(lights, cam)
+    assert r.source_mesh.num_faces < 200 and r.view.transferred
+    assert torch.equal(new.mask, ref.mask)  # the full mesh's silhouette
+    err_old, err_new = image_error(old, ref)["rel_rmse"], image_error(new, ref)["rel_rmse"]
+    assert err_new < 0.75 * err_old, (err_new, err_old)
+    again = r.render(lights, cam)  # the camera's uv is reused: same frame
+    torch.testing.assert_close(again.radiance, new.radiance)

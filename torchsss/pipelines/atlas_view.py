@@ -1,0 +1,73 @@
+"""What the camera of an atlas method reads: the full mesh in view, the atlas built on a (decimated) source mesh.
+
+The atlas methods (Lensch, icdf, hybrid) may build on the mesh decimated to the detail that the material's
+scattering length shows (knob ``source_faces``, set by the planner), as the reference takes its sample sources
+from a decimated mesh: the camera still sees the full mesh (its silhouette, normals and Fresnel terms), and every
+visible pixel reads the atlas at its closest point on the decimated surface
+(:class:`~torchsss.geometry.transfer.SurfaceLocator`). Without decimation the pixel's own atlas coordinates are
+used (:func:`~torchsss.geometry.atlas_frame.camera_uv`).
+"""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from torchsss.geometry.atlas import Atlas
+from torchsss.geometry.atlas_frame import camera_uv
+from torchsss.geometry.camera import Camera
+from torchsss.geometry.mesh import Mesh, decimate
+from torchsss.geometry.transfer import SurfaceLocator, transferred_uv
+
+__all__ = ["AtlasView", "source_mesh"]
+
+
+def source_mesh(mesh: Mesh, source_faces: object) -> Mesh:
+    """``mesh`` decimated to about ``source_faces`` faces (None, or at least the mesh's count: ``mesh`` itself).
+
+    Raises:
+        ValueError: ``source_faces`` not None and not an int >= 4.
+    """
+    if source_faces is None:
+        return mesh
+    if isinstance(source_faces, bool) or not isinstance(source_faces, int) or source_faces < 4:
+        raise ValueError(f"source_faces: expected an int >= 4 or None, got {source_faces!r}")
+    return decimate(mesh, source_faces) if source_faces < mesh.num_faces else mesh
+
+
+class AtlasView:
+    """Atlas coordinates of every camera pixel, built once per (mesh, source mesh, atlas); cached per camera.
+
+    Args:
+        mesh: The mesh the camera sees (mm).
+        source: The mesh the atlas was built on (``mesh`` itself, or a decimated copy of it).
+        atlas: The atlas of ``source``.
+    """
+
+    def __init__(self, mesh: Mesh, source: Mesh, atlas: Atlas) -> None:
+        self.mesh, self.source, self.atlas = mesh, source, atlas
+        self.locator = None if source is mesh else SurfaceLocator(source)
+        self._camera: Camera | None = None
+        self._uv: Tensor | None = None
+
+    @property
+    def transferred(self) -> bool:
+        """Whether pixels read the atlas through closest points on a decimated source mesh."""
+        return self.locator is not None
+
+    def uv(self, camera: Camera, position: Tensor, mask: Tensor) -> Tensor:
+        """:math:`(1, 2, H, W)` uv for :meth:`Atlas.sample` from the camera G-buffer of ``mesh``.
+
+        Args:
+            camera: The camera (a repeated camera reuses the last frame's uv: lights may move, the view did not).
+            position: :math:`(1, 3, H, W)` G-buffer positions of ``mesh`` (mm).
+            mask: :math:`(1, 1, H, W)` its coverage.
+        """
+        if self._camera is not None and camera == self._camera and self._uv is not None \
+                and self._uv.shape[-2:] == position.shape[-2:]:
+            return self._uv
+        if self.locator is None:
+            uv, _ = camera_uv(self.mesh, self.atlas, camera)
+        else:
+            uv = transferred_uv(self.locator, self.atlas.face_uvs, position, mask)
+        self._camera, self._uv = camera, uv
+        return uv
