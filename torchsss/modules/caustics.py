@@ -472,10 +472,11 @@ class CausticMap(nn.Module):
             d, found = self.back_search(origin.reshape(b, n * c, 3), t1.reshape(b, n * c, 3), back_tex, view_proj)
             d, found = d.reshape(b, n, c), found.reshape(b, n, c)
         else:
-            pb = _flat(back_tex)
+            # the back point of the same texel: the lookup at the front point's own projection (its texel centre;
+            # the points may be a compacted subset of the grid)
+            pb, found = lookup_positions(p, back_tex, view_proj)
             dv = pb - p
             d = torch.sqrt((dv * dv).sum(-1).clamp_min(0.0))
-            found = torch.isfinite(d)
             d = torch.where(found, d, torch.zeros_like(d))[..., None].expand(b, n, c)
             found = found[..., None].expand(b, n, c)
         x_b = origin + d[..., None] * t1
