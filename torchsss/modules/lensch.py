@@ -208,18 +208,41 @@ class LocalResponse(nn.Module):
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
 
     def kernels(self) -> Tensor:
-        """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``)."""
-        rd = self.material(self.distance.unsqueeze(-1))  # (H, W, k, k, C)
-        k = self.area.unsqueeze(-1) * rd
-        disk = _disk_integral(self.material, self.self_area, self.self_scale) if self.self_term == "disk" else None
+        """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``).
+
+        Outside autograd and tracing they are evaluated in blocks of atlas rows (about 32 MB of profile
+        temporaries at a time instead of several copies of the whole :math:`(H, W, k, k, C)` tensor: 3.4 GB at
+        atlas 512 and k = 11); under autograd or export in one expression.
+        """
+        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
+                torch.onnx.is_in_onnx_export():
+            return self._kernel_rows(0, self.distance.shape[0])
+        height, width, k, _ = self.distance.shape
+        per_row = width * k * k * 4 * self.distance.element_size()  # a row of (W, k, k, C ~ 4) temporaries
+        block = max(1, (32 << 20) // per_row)
+        out = None
+        for lo in range(0, height, block):
+            rows = self._kernel_rows(lo, min(height, lo + block))
+            if out is None:
+                out = rows.new_empty((rows.shape[0], height, *rows.shape[2:]))
+            out[:, lo:lo + block] = rows
+        return out
+
+    def _kernel_rows(self, lo: int, hi: int) -> Tensor:
+        """:meth:`kernels` for the receiver rows ``lo:hi``: :math:`(C, hi - lo, W, k, k)`."""
+        area = self.area[lo:hi]
+        rd = self.material(self.distance[lo:hi].unsqueeze(-1))  # (h, W, k, k, C)
+        k = area.unsqueeze(-1) * rd
+        scale = None if self.self_scale is None else self.self_scale[lo:hi]
+        disk = _disk_integral(self.material, self.self_area[lo:hi], scale) if self.self_term == "disk" else None
         if disk is not None:
             c = self.kernel_size // 2
-            centre = torch.zeros_like(self.area)
+            centre = torch.zeros_like(area)
             centre[:, :, c, c] = 1.0
             k = k + centre.unsqueeze(-1) * (disk - k[:, :, c, c]).unsqueeze(2).unsqueeze(2)
         k = k.permute(4, 0, 1, 2, 3)
         if self.correction is not None:
-            k = k + self.correction
+            k = k + self.correction[:, lo:hi]
         return k
 
     def forward(self, irradiance: Tensor) -> Tensor:
