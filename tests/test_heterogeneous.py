@@ -80,7 +80,7 @@ def test_heterogeneous_maps_parameters_buffers_and_values():
     other.load_state_dict(maps.state_dict())
     torch.testing.assert_close(other()[0], maps()[0])
     # the regulariser: 0 for a constant map, positive for the ramp
-    assert float(HeterogeneousMaps(mesh).smoothness()) == 0.0
+    assert float(HeterogeneousMaps(mesh).smoothness().detach()) == 0.0
     assert float(maps.smoothness()) > 0.0
 
 
@@ -99,17 +99,18 @@ def test_heterogeneous_maps_errors():
 
 
 def test_tiny_stripe_fit_moves_the_map_towards_the_stripe(tmp_path):
-    """examples/fit_heterogeneous.py on a 42-vertex sphere, 2 views at 16 x 16, 8 Adam steps: the map error falls
-    and the stripe comes out denser than the rest (the targets are the reference integrator's, the fit splats)."""
+    """examples/fit_heterogeneous.py on a 42-vertex sphere, 2 views at 12 x 12, 5 Adam steps: the map error falls
+    and the stripe comes out denser than the rest (the targets are the reference integrator's, the fit splats;
+    measured 0.617 -> 0.540, stripe 1.76 against 1.64 outside, loss / 12)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
     try:
         import fit_heterogeneous
     finally:
         sys.path.pop(0)
-    out = fit_heterogeneous.main(["--subdivisions", "1", "--size", "16", "--views", "2", "--steps", "8", "--lr",
-                                  "0.1", "--no-progress", "--out", str(tmp_path)])
+    out = fit_heterogeneous.main(["--subdivisions", "1", "--size", "12", "--views", "2", "--steps", "5", "--lr",
+                                  "0.15", "--no-progress", "--out", str(tmp_path)])
     err = out["map_rms_error"]
-    assert err["fitted"] < 0.9 * err["initial"], err
-    assert out["mean_md"]["stripe"] > out["mean_md"]["outside"] + 0.1, out["mean_md"]
+    assert err["fitted"] < 0.95 * err["initial"], err
+    assert out["mean_md"]["stripe"] > out["mean_md"]["outside"] + 0.05, out["mean_md"]
     assert out["loss"][-1] < 0.5 * out["loss"][0]
     assert (tmp_path / "heterogeneous_maps.png").is_file()
