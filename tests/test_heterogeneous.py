@@ -81,7 +81,7 @@ def test_heterogeneous_maps_parameters_buffers_and_values():
     torch.testing.assert_close(other()[0], maps()[0])
     # the regulariser: 0 for a constant map, positive for the ramp
     assert float(HeterogeneousMaps(mesh).smoothness().detach()) == 0.0
-    assert float(maps.smoothness()) > 0.0
+    assert float(maps.smoothness().detach()) > 0.0
 
 
 def test_heterogeneous_maps_errors():
