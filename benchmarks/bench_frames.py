@@ -51,7 +51,7 @@ from torchsss.ops.fused import dipole_pair_sum
 from torchsss.ops.icdf import icdf_sample
 from torchsss.ops.reference import reference_radiosity
 from torchsss.pipelines.build import build
-from torchsss.plan import plan
+from torchsss.plan import plan_method
 from torchsss.registry import orbit_lights
 from torchsss.scene import Scene, load_scene
 from torchsss.trade import PeakMemory, image_error
@@ -100,17 +100,8 @@ def _timed(fn, device: str):
 
 
 def _planned(scene: Scene, method: str, tolerance: float, frames: int) -> tuple[dict, int | None, str]:
-    """The planner's knobs and decimation for ``method`` alone; its most accurate candidate if none qualifies."""
-    p = plan(scene, tolerance, frames, methods=[method])
-    if p.method == method:
-        return dict(p.knobs), p.decimate, ""
-    mine = [c for c in p.candidates if c.get("method") == method and math.isfinite(c.get("error", math.nan))]
-    if not mine:  # the defaults, on the mesh the planner would give an atlas method
-        dec = plan(scene, 0.5, frames, methods=["icdf"]).decimate if method in ("icdf", "hybrid", "lensch") else None
-        return {}, dec, "no candidate: the method's defaults"
-    best = min(mine, key=lambda c: c["error"])
-    return (dict(best["knobs"]), best.get("decimate"),
-            f"no configuration predicted within {tolerance:.0%}: the most accurate ({best['error']:.2%} predicted)")
+    """The planner's knobs and decimation for ``method`` alone (what ``render --method M`` uses by default)."""
+    return plan_method(scene, method, tolerance, frames)
 
 
 def _frames(renderer, scene: Scene, frames: int, device: str) -> tuple:

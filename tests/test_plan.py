@@ -9,7 +9,18 @@ import pytest
 from torchsss.cli import main
 from torchsss.geometry import Camera, PointLight, sphere
 from torchsss.pipelines import build
-from torchsss.plan import MARGIN, RULES, Plan, SceneFacts, candidates, detail_faces, plan, predict, source_count
+from torchsss.plan import (
+    MARGIN,
+    RULES,
+    Plan,
+    SceneFacts,
+    candidates,
+    detail_faces,
+    plan,
+    plan_method,
+    predict,
+    source_count,
+)
 from torchsss.scene import Scene, default_scene_path, load_scene
 
 
@@ -214,4 +225,13 @@ def test_cli_plan_and_auto_render(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["render", str(path), "--method", "reference", "--samples", "64", "--out", str(tmp_path / "z.exr")])
     with pytest.raises(SystemExit):
-        main(["render", str(path), "--method", "splat", "--tolerance", "0.05", "--out", str(tmp_path / "z.exr")])
+        main(["render", str(path), "--method", "reference", "--tolerance", "0.05", "--out", str(tmp_path / "z.exr")])
+    # a method named: its knobs are the planner's for it alone; given flags override them
+    assert main(["render", str(path), "--method", "splat", "--tolerance", "0.05", "--out", str(tmp_path / "sp.exr"),
+                 "--no-progress"]) == 0
+    sp = json.loads((tmp_path / "sp.json").read_text())
+    want, _, _ = plan_method(load_scene(path), "splat", 0.05)
+    assert sp["method_plan"]["knobs"] == want and sp["knobs"]["eps"] == want["eps"]
+    assert main(["render", str(path), "--method", "splat", "--eps", "0.2", "--out", str(tmp_path / "t.exr"),
+                 "--no-progress"]) == 0
+    assert json.loads((tmp_path / "t.json").read_text())["knobs"]["eps"] == 0.2

@@ -35,7 +35,7 @@ from torchsss.physics import (
     total_diffuse_reflectance,
 )
 from torchsss.physics.materials import PROFILES
-from torchsss.plan import Plan, plan
+from torchsss.plan import Plan, plan, plan_method
 from torchsss.registry import METHODS, render_scene
 from torchsss.scene import Scene, default_scene_path, load_scene
 from torchsss.trade import trade, write_trade
@@ -171,7 +171,9 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     multiplier (the EXR stays linear). Caustics scenes use :func:`~torchsss.io.key_exposure` and the extended tone
     curve instead (the floor's median at 0.5, the brightest caustic pixel at white), so neither is lost.
 
-    ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
+    ``method`` splat, icdf, hybrid or lensch (:data:`PLANNED_METHODS`) gets the planner's knobs for that method
+    alone at ``tolerance`` (:func:`~torchsss.plan.plan_method`; the JSON's ``"method_plan"``), with ``explicit``
+    flags on top. ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
     scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with ``explicit`` knob flags
     (:data:`KNOB_FLAGS` dests) on top; the JSON gets the plan (``"plan"``).
 
@@ -191,7 +193,7 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
         else:
             scene = dataclasses.replace(scene, material=scene.material.with_profile(profile))
     t0 = time.perf_counter()
-    planned = None
+    planned = method_note = None
     if method == "auto":
         explicit = dict(explicit or {})
         if scene.caustics is not None:
@@ -202,6 +204,18 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
             scene = planned.scene(scene)
             method = planned.method
             options = {**options, **method_knobs(method, explicit, planned.knobs)}
+    elif method in PLANNED_METHODS:
+        # the method's default knobs: the planner's choice for it alone (given flags override them)
+        explicit = dict(explicit or {})
+        if scene.objects or scene.caustics is not None:
+            method_note = {"knobs": None, "note": "multi-object scene: the method's fixed defaults"}
+            options = {**options, **method_knobs(method, explicit)}
+        else:
+            knobs, decimate, note = plan_method(scene, method, tolerance, frames)
+            if decimate:
+                scene = dataclasses.replace(scene, decimate=int(decimate))
+            method_note = {"knobs": knobs, "note": note}
+            options = {**options, **method_knobs(method, explicit, knobs)}
     result = render_scene(scene, method, dtype=dtype, frames=frames, spp=spp, **options)
     seconds = time.perf_counter() - t0
     exr.parent.mkdir(parents=True, exist_ok=True)
@@ -230,6 +244,8 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                                          / max(1, int(result.mask.sum()))],
                "spp": spp, "exposure": exposure, "exposure_ev": exposure_ev, "white": white,
                "stats": jsonable(result.stats), "exr": str(exr), "png": str(png), "json": str(json_path)}
+    if method_note is not None:
+        summary["method_plan"] = jsonable(method_note)
     if planned is not None:
         p = planned.to_json()
         p["candidates"] = p["candidates"][:10]
@@ -273,6 +289,9 @@ def trade_command(scene_arg: str, out: Path, *, quick: bool = False, resolution:
     result["json"], result["png"] = str(js), None if png is None else str(png)
     return result
 
+
+#: Methods whose default knobs are planned from the scene (:func:`torchsss.plan.plan_method`) at ``--tolerance``.
+PLANNED_METHODS = ("splat", "icdf", "hybrid", "lensch")
 
 #: Per-method knob flags of ``render``: argparse dest -> (knob, the methods that take it, default).
 KNOB_FLAGS: dict[str, tuple[str, frozenset[str], object]] = {
@@ -381,7 +400,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_ren.add_argument("--method", default="auto", choices=["auto", *sorted(METHODS)],
                        help="rendering method (default auto: the planner's choice for --tolerance)")
     p_ren.add_argument("--tolerance", type=float, default=None,
-                       help="auto: relative RMSE against the reference to meet at least cost (default 0.02)")
+                       help="auto, splat, icdf, hybrid, lensch: relative RMSE against the reference that the "
+                            "planned knobs meet at least cost (default 0.02)")
     p_ren.add_argument("--out", type=Path, default=Path("out/render.exr"),
                        help="output EXR or PNG (the other image and the JSON beside it)")
     p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
@@ -453,8 +473,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.error(f"--frames: expected an int >= 1, got {args.frames}")
         if args.tolerance is not None and not 0 < args.tolerance < 1:
             parser.error(f"--tolerance: expected a value in (0, 1), got {args.tolerance}")
-        if args.tolerance is not None and args.method != "auto":
-            parser.error(f"--tolerance: applies to --method auto (the planner), got --method {args.method}")
+        if args.tolerance is not None and args.method not in ("auto", *PLANNED_METHODS):
+            parser.error(f"--tolerance: applies to --method auto and to the planned methods "
+                         f"({', '.join(PLANNED_METHODS)}), got --method {args.method}")
         try:
             explicit = _explicit_knobs(args)
             options = {"progress": not args.no_progress}
@@ -463,7 +484,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     raise ValueError("specular: expected off for --method caustics (the refractor shows Fresnel "
                                      "reflection of a uniform environment instead), got on")
                 options.update(specular=True, roughness=args.roughness)
-            if args.method != "auto":
+            if args.method not in ("auto", *PLANNED_METHODS):
                 options.update(method_knobs(args.method, explicit))
             summary = render(args.scene, args.method, args.out, options=options,
                              dtype=torch.float64 if args.float64 else torch.float32, resolution=args.resolution,

@@ -61,10 +61,11 @@ from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK
 from torchsss.physics.budget import splat_alias_error
+from torchsss.physics.materials import Material
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
-__all__ = ["MODEL", "RULES", "Plan", "SceneFacts", "candidates", "plan", "predict"]
+__all__ = ["MODEL", "RULES", "Plan", "SceneFacts", "candidates", "plan", "plan_method", "predict"]
 
 #: The rules the planner applies (name -> what it skips or chooses).
 RULES = {
@@ -340,6 +341,10 @@ class _Profile:
 
     @classmethod
     def of(cls, material) -> _Profile:
+        if isinstance(material, Material) and material.profile != "dipole":
+            # the planner's closed forms are the dipole's; another profile of the same coefficients is planned
+            # as its dipole (the profiles agree to within their own model error: tests/test_lut_burley.py)
+            material = material.with_profile("dipole")
         mod = material_module(material, dtype=torch.float64)
         key = (type(mod).__name__, *(tuple(t.detach().double().reshape(-1).tolist())
                                      for t in (mod.sigma_a, mod.sigma_s_prime, mod.eta)))
@@ -695,3 +700,26 @@ def _terms(best: dict, scene: Scene) -> tuple[list[str], list[str]]:
         skipped.append(f"mesh detail beyond {best['decimate']} faces")
     return modelled, skipped
 
+
+def plan_method(scene: Scene, method: str, tolerance: float = 0.02, frames: int = 1) -> tuple[dict, int | None, str]:
+    """The default knobs of ``method`` for ``scene``: the planner's choice for that method alone.
+
+    ``(knobs, decimate, note)``: the cheapest configuration of ``method`` predicted within ``tolerance``; when none
+    is, its candidate with the smallest predicted error (``note`` says so); when the planner has no candidate of
+    the method at all, no knobs (the method's own defaults). ``decimate`` is the scene's decimation (None for every
+    method today: the atlas methods decimate through their ``source_faces`` knob).
+
+    Raises:
+        ValueError: as :func:`plan`.
+    """
+    p = plan(scene, tolerance, frames, methods=[method])
+    if p.method == method:
+        return dict(p.knobs), p.decimate, f"planned for {tolerance:.0%}: predicted {p.predicted_error:.2%}"
+    mine = [c for c in p.candidates if c.get("method") == method and math.isfinite(c.get("error", math.nan))]
+    if not mine:  # the method's defaults, on the detail an atlas needs (the decimation of a loose plan)
+        loose = plan(scene, 0.5, frames, methods=["icdf"]).knobs.get("source_faces") if method in ATLAS_METHODS \
+            else None
+        return ({"source_faces": loose} if loose else {}), None, "no candidate: the method's defaults"
+    best = min(mine, key=lambda c: c["error"])
+    return (dict(best["knobs"]), best.get("decimate"),
+            f"no configuration predicted within {tolerance:.0%}: the most accurate ({best['error']:.2%} predicted)")
