@@ -173,9 +173,9 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
 
     ``method`` splat, icdf, hybrid or lensch (:data:`PLANNED_METHODS`) gets the planner's knobs for that method
     alone at ``tolerance`` (:func:`~torchsss.plan.plan_method`; the JSON's ``"method_plan"``), with ``explicit``
-    flags on top. ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and ``frames``; a caustics
-    scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with ``explicit`` knob flags
-    (:data:`KNOB_FLAGS` dests) on top; the JSON gets the plan (``"plan"``).
+    flags on top. ``method="auto"`` plans the render (:func:`torchsss.plan.plan` with ``tolerance`` and
+    ``frames``; a caustics scene renders with ``caustics``): the plan's method, knobs and mesh decimation, with
+    ``explicit`` knob flags (:data:`KNOB_FLAGS` dests) on top; the JSON gets the plan (``"plan"``).
 
     ``save_gbuffers`` (splat and lensch): also write the first frame's G-buffers and its exported ONNX frame graph to
     that ``.npz`` (:func:`torchsss.export.frames.save_scene_gbuffers`; ``export/ort_render.py`` renders it).
