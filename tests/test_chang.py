@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import torchsss.modules.chang as chang_module
 from torchsss.geometry import PointLight, build_atlas, plane, sphere, surface_irradiance
 from torchsss.modules import DipoleMaterial
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
@@ -147,7 +148,7 @@ def test_hybrid_local_filter_is_exact_for_constant_irradiance_on_a_plane(lit_pla
     q = dipole_rd(r, mat.sigma_a.detach(), mat.sigma_s_prime.detach(), 1.3) * w_l * 2 * math.pi * r
     want = torch.trapezoid(q, r, dim=0) * torch.tensor([1.0, 2.0, 3.0], dtype=F64)
     torch.testing.assert_close(loc, want.expand_as(loc), rtol=2e-3, atol=0.0)
-    assert hy.pattern.shape == (4 * 8 + 1, 2)
+    assert hy.pattern.shape == (8 * 16 + 1, 2)
     radii = hy.ring_radii
     assert bool((radii[1:] > radii[:-1]).all()) and float(radii[-1]) < hy.bound
 
@@ -171,7 +172,7 @@ def test_hybrid_beats_pure_sampling_for_a_dense_material_on_a_plane(lit_plane):
     assert err_hybrid < 0.2 * err_pure, (err_hybrid, err_pure)
 
 
-def test_hybrid_split_is_exact_and_without_local_peak_is_pure_sampling(lit_sphere):
+def test_hybrid_split_is_exact_and_without_local_peak_is_pure_sampling(lit_sphere, monkeypatch):
     atlas, mat, e, rec, _ = lit_sphere
     hy = HybridTranslucency.from_atlas(atlas, mat)
     # local + global profiles add up to R_d at every distance, including past the local bound
@@ -185,6 +186,12 @@ def test_hybrid_split_is_exact_and_without_local_peak_is_pure_sampling(lit_spher
     u = torch.rand(1, 64, 2, generator=torch.Generator().manual_seed(0), dtype=F64)
     uv = torch.full((1, rec.shape[1], 2), 0.5, dtype=F64)
     torch.testing.assert_close(hy0(e, u, rec, uv), pure(e, u, rec))
+    # ... and through the plain dipole, so that the fused kernel takes it (a split profile would run eager)
+    seen = []
+    monkeypatch.setattr(chang_module, "reference_radiosity",
+                        lambda *a, **k: seen.append(a[4]) or reference_radiosity(*a, **k))
+    hy0(e, u, rec, uv)
+    assert seen == [mat] and callable(getattr(type(seen[0]), "dipole_coefficients", None))
 
 
 # -- (d) extremes ---------------------------------------------------------------------------------------------------

@@ -127,6 +127,22 @@ def test_rule_samples_from_tolerance():
     assert p.predicted_error <= 0.1 and "samples" in p.reasons
 
 
+def test_samples_below_the_floor_plan_the_most_accurate_hybrid():
+    # the hybrid's local-filter floor exceeds 0.5%: no N meets it, yet `render --method hybrid` must not fall back to
+    # the 4096-sample defaults but get the candidate whose sampling error sits under the floor
+    s = _scene(res=16, light=(-0.3, 0.2, -1.0))
+    facts = SceneFacts.from_scene(s)
+    cand = [c for c in candidates(s, facts, 0.005, ["hybrid"]) if c["method"] == "hybrid"]
+    assert len(cand) == 1 and "floor" in cand[0]["rules"]["samples"]
+    n = cand[0]["knobs"]["samples"]
+    assert 4096 < n <= 1 << 16
+    pred = predict("hybrid", {"samples": n}, facts, s.material)["error"]
+    floor = predict("hybrid", {"samples": 1 << 24}, facts, s.material)["error"]
+    assert pred * MARGIN > 0.005 and pred <= 1.15 * floor  # misses the tolerance, sits within ~12% of the floor
+    knobs, _, note = plan_method(s, "hybrid", 0.005)
+    assert knobs["samples"] == n and "most accurate" in note
+
+
 def test_rule_splat_budget_tighter_for_lower_tolerance():
     s = _scene(res=32)
     loose, tight = plan(s, 0.2, methods=["splat"]), plan(s, 0.04, methods=["splat"])

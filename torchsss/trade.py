@@ -71,7 +71,7 @@ def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[d
     * reference: ``eps`` 0.3, 0.1, 0.03 (the sample spacing's tolerance; the truth uses 0.01).
     * splat: ``eps`` 0.1, 0.03, 0.01, 0.003 (the splat budget, Shah eq. 6.16-6.18) and ``oversample`` 1 and 2.
     * icdf: ``samples`` 1024 ... 65536 (error ~ 1/sqrt(N)).
-    * hybrid: ``samples`` 1024 ... 16384.
+    * hybrid: ``samples`` 1024 ... 65536.
     * lensch: ``atlas_resolution`` 128, 256, 512.
 
     Examples:
@@ -88,7 +88,7 @@ def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[d
         grids = {"reference": [{"eps": e} for e in (0.3, 0.1, 0.03)],
                  "splat": [{"eps": e, "oversample": s} for e in (0.1, 0.03, 0.01, 0.003) for s in (1.0, 2.0)],
                  "icdf": [{"samples": n} for n in (1024, 4096, 16384, 65536)],
-                 "hybrid": [{"samples": n} for n in (1024, 4096, 16384)],
+                 "hybrid": [{"samples": n} for n in (1024, 4096, 16384, 65536)],
                  "lensch": [{"atlas_resolution": r} for r in (128, 256, 512)]}
     if method not in grids:
         raise ValueError(f"method: expected one of {sorted(grids)}, got {method!r}")

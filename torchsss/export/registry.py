@@ -348,7 +348,7 @@ def _hybrid_case() -> ExportCase:
         example_args=_chang_args(atlas, 2, 64, 40, 0, True),
         test_args=_chang_args(atlas, 3, 300, 57, 1, True),
         dynamic_shapes=_chang_dyn(True),
-        description="HybridTranslucency (skin1, 32x32 sphere atlas, 4x8 local pattern): irradiance (B, 3, 32, 32), "
+        description="HybridTranslucency (skin1, 32x32 sphere atlas, 8x16 local pattern): irradiance (B, 3, 32, 32), "
                     "u (B, N, 2), receivers (B, M, 3) mm, receivers_uv (B, M, 2) -> radiosity (B, M, 3)",
         slow=True,
     )

@@ -245,11 +245,17 @@ class ImportanceSampledTranslucency(nn.Module):
                 ``u`` outside [0, 1), no samples.
         """
         dims = self._check_inputs(irradiance, u, receivers)
+        return self.estimate(irradiance, u, receivers, dims, pdf)
+
+    def estimate(self, irradiance: Tensor, u: Tensor, receivers: Tensor, dims: dict, pdf: Tensor | None = None,
+                 profile: nn.Module | None = None) -> Tensor:
+        """:meth:`forward` on checked inputs (``dims`` from the checks), with ``profile`` in place of the material."""
+        profile = self.material if profile is None else profile
         src_pos, src_e, inv, ds, _ = self._draw(irradiance, u, dims, pdf)
         if not is_tracing() and dims["M"] == 0:
-            c = max(dims["C"], _material_channels(self.material) or 1)
+            c = max(dims["C"], _material_channels(profile) or 1)
             return src_e.new_zeros(dims["B"], 0, c)
-        return reference_radiosity(src_pos, src_e, inv.to(src_e.dtype), receivers.to(src_e.dtype), self.material,
+        return reference_radiosity(src_pos, src_e, inv.to(src_e.dtype), receivers.to(src_e.dtype), profile,
                                    src_distance_scale=ds, max_pairs=self.max_pairs)
 
     def _draw(self, irradiance: Tensor, u: Tensor, dims: dict, pdf: Tensor | None = None):
@@ -447,8 +453,8 @@ class HybridTranslucency(nn.Module):
         r_p: float | None = None,
         c: float = 0.1,
         k: float = 1.5,
-        rings: int = 4,
-        per_ring: int = 8,
+        rings: int = 8,
+        per_ring: int = 16,
         local_eps: float = 1e-3,
         grid: int = 1024,
         irradiance_scale: Tensor | None = None,
@@ -655,8 +661,8 @@ class HybridTranslucency(nn.Module):
         dims = self.global_term._check_inputs(irradiance, u, receivers)
         check_shape(receivers_uv, "receivers_uv", "B,M,2", B=dims["B"], M=dims["M"])
         check_finite(receivers_uv, "receivers_uv")
-        if self.bound <= 0:
-            return self.global_term(irradiance, u, receivers)
+        if self.bound <= 0:  # no split (W_l = 0): the plain profile, which the fused kernel evaluates
+            return self.global_term.estimate(irradiance, u, receivers, dims, profile=self.material)
         uv = receivers_uv.to(irradiance.dtype)
         if self.chart_id is None:
             return self.global_term(irradiance, u, receivers) + self.local(irradiance, uv)

@@ -129,7 +129,7 @@ def build_icdf(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: 
 
 
 def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: int = 512, kernel_size: int = 7,
-                 rings: int = 4, per_ring: int = 8, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
+                 rings: int = 8, per_ring: int = 16, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
                  levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, max_reach: float | None = 0.8,
                  progress: bool = False) -> ChangScene:
     """Atlas + :class:`HybridTranslucency` for ``mesh`` in ``material``.
@@ -244,7 +244,7 @@ class HybridRenderer(IcdfRenderer):
 
     method = "hybrid"
     hybrid = True
-    defaults: ClassVar[dict] = dict(IcdfRenderer.defaults, rings=4, per_ring=8, c=0.1, k=1.5, local_eps=1e-3,
+    defaults: ClassVar[dict] = dict(IcdfRenderer.defaults, rings=8, per_ring=16, c=0.1, k=1.5, local_eps=1e-3,
                                     max_reach=0.8)
 
     def _build(self) -> None:
