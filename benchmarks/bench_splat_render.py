@@ -183,7 +183,7 @@ def timed_frames(fn, repeats: int, budget_s: float):
 def budget_seconds(mesh, material: Material, eps: float, max_grid: int, oversample: float) -> float:
     """Seconds of the per-frame budget solve inside ``render_splat``: ``splat_grid`` and the module's ``r_max``."""
     t0 = time.perf_counter()
-    splat_grid(mesh, material, eps, max_grid, oversample)
+    splat_grid(mesh, material, eps, max_grid, oversample, min_grid=2)
     SplatTranslucency(DipoleMaterial(*material.tensors(dtype=torch.float32)), eps=eps)
     return time.perf_counter() - t0
 
@@ -256,8 +256,8 @@ def bench_materials(setup: SceneSetup, cfg: dict) -> list[dict]:
         material = Material.from_json(name)
         sa, ss, eta = material.tensors()
         terms = dipole_terms(sa, ss, eta)
-        grid = splat_grid(setup.mesh, material, EPS, cfg["max_grid"], OVERSAMPLE)
-        grid_free = splat_grid(setup.mesh, material, EPS, 1 << 30, OVERSAMPLE)
+        grid = splat_grid(setup.mesh, material, EPS, cfg["max_grid"], OVERSAMPLE, min_grid=2)
+        grid_free = splat_grid(setup.mesh, material, EPS, 1 << 30, OVERSAMPLE, min_grid=2)
         res, times = timed_frames(lambda material=material: render_splat(
             setup.mesh, material, setup.lights, setup.camera, eps=EPS, max_grid=cfg["max_grid"]),
             cfg["repeats"], cfg["row_budget_s"])
@@ -322,11 +322,11 @@ def bench_accuracy(setup: SceneSetup, cfg: dict) -> list[dict]:
     print(f"[{setup.label}] reference {setup.camera.width}x{setup.camera.height}: {t_ref:.1f} s, spacing "
           f"{spacing:.3f} mm, {ref.stats['samples']} samples, {int(ref.mask.sum())} pixels", flush=True)
     pixels = covered_pixels(setup)
-    budget = {eps: splat_grid(setup.mesh, mat, eps, 1 << 30, OVERSAMPLE) for eps in {EPS, *cfg["eps"]}}
+    budget = {eps: splat_grid(setup.mesh, mat, eps, 1 << 30, OVERSAMPLE, min_grid=2) for eps in {EPS, *cfg["eps"]}}
     rows = [("grid", EPS, s) for s in cfg["oversample"]] + [("eps", e, OVERSAMPLE) for e in cfg["eps"]]
     done: dict = {}
     for sweep, eps, over in rows:
-        grid = splat_grid(setup.mesh, mat, eps, 1 << 30, over)
+        grid = splat_grid(setup.mesh, mat, eps, 1 << 30, over, min_grid=2)
         key = (eps, grid)
         if key in done:  # the budget row of the grid sweep is the eps = 0.01 row of the eps sweep
             records.append({**done[key], "sweep": sweep})

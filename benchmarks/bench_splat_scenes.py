@@ -167,7 +167,7 @@ def bench_two_objects(cfg: dict) -> list[dict]:
         check = render_reference_objects(objects, lights, cam, eps=cfg["ref_check_eps"])
         check.stats["eps_tag"] = cfg["ref_check_eps"]
     records = [_reference_record("two_objects", ref, cam, spacing, cfg["ref_eps"], t_ref, contact, check)]
-    budget = {eps: splat_grid(merged, materials, eps, 1 << 30, OVERSAMPLE) for eps in {EPS, *cfg["eps"]}}
+    budget = {eps: splat_grid(merged, materials, eps, 1 << 30, OVERSAMPLE, min_grid=2) for eps in {EPS, *cfg["eps"]}}
     rows = [("eps", e, budget[e]) for e in cfg["eps"]]
     rows += [("grid", EPS, max(2, round(r * budget[EPS]))) for r in cfg["grid_ratios"]]
     done: dict = {}
@@ -228,7 +228,7 @@ def bench_environment(name: str, cfg: dict) -> list[dict]:
         check = render_reference(mesh, mat, [env], cam, eps=cfg["ref_check_eps"])
         check.stats["eps_tag"] = cfg["ref_check_eps"]
     records = [_reference_record(f"env_{name}", ref, cam, spacing, cfg["ref_eps"], t_ref, None, check)]
-    budget = splat_grid(mesh, mat, EPS, 1 << 30, OVERSAMPLE)
+    budget = splat_grid(mesh, mat, EPS, 1 << 30, OVERSAMPLE, min_grid=2)
     rows = [("grid", max(2, round(r * budget)), 8) for r in cfg["env_grid_ratios"]]
     rows += [("peel", budget, p) for p in cfg["peel_layers"]]
     done: dict = {}

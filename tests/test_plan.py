@@ -9,6 +9,7 @@ import pytest
 from torchsss.cli import main
 from torchsss.geometry import Camera, PointLight, sphere
 from torchsss.pipelines import build
+from torchsss.pipelines.splat import MIN_GRID, splat_grid
 from torchsss.plan import (
     MARGIN,
     RULES,
@@ -159,8 +160,11 @@ def test_rule_splat_budget_tighter_for_lower_tolerance():
     s = _scene(res=32)
     loose, tight = plan(s, 0.2, methods=["splat"]), plan(s, 0.04, methods=["splat"])
     assert loose.method == tight.method == "splat"
-    grid = {id(p): p.knobs["oversample"] / p.knobs["eps"] for p in (loose, tight)}
-    assert grid[id(tight)] >= grid[id(loose)] and loose.predicted_frame_s <= tight.predicted_frame_s
+    mesh = s.load_mesh()
+    grid = {id(p): splat_grid(mesh, s.material, p.knobs["eps"], oversample=p.knobs["oversample"])
+            for p in (loose, tight)}
+    assert grid[id(tight)] >= grid[id(loose)] >= MIN_GRID and loose.predicted_frame_s <= tight.predicted_frame_s
+    assert tight.predicted_error * MARGIN <= 0.04 < loose.predicted_error * MARGIN
     assert "splat_budget" in tight.reasons
 
 

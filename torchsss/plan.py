@@ -62,6 +62,7 @@ from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK
 from torchsss.physics.budget import splat_alias_error
 from torchsss.physics.materials import Material
+from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
@@ -450,7 +451,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     if method == "splat":
         eps, over = float(knobs.get("eps", 0.01)), float(knobs.get("oversample", 2.0))
         h = prof.spacing(eps)
-        grid = min(512, max(2, math.ceil(over * 2.0 * facts.radius_mm / h)))
+        grid = min(512, max(MIN_GRID, math.ceil(over * 2.0 * facts.radius_mm / h)))
         texel = 2.0 * facts.radius_mm / grid
         u, d = max(facts.unlit, 0.1), depth(facts)
         err = math.sqrt((m["splat_floor"] * u ** m["splat_u_floor"]) ** 2

@@ -74,9 +74,17 @@ def _spacing(material: Material | nn.Module, eps: float) -> float:
     return float(material.spacing(eps).min())
 
 
+#: The coarsest light view: the irradiance (n.l, shadows) varies on the object's own scale however smooth the
+#: profile is. A 5 mm chicken1 bunny (scattering length > the object) got 5-13 texels from the budget and measured
+#: 5-14% against the reference at 128x128; 16 texels 1.1%, 32 0.86%.
+MIN_GRID = 32
+
+
 def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | nn.Module], eps: float = 0.01,
-               max_grid: int = 512, oversample: float = 2.0) -> int:
-    """Light-view resolution :math:`n = \\lceil s \\cdot 2R / h(\\epsilon) \\rceil` (module docstring), capped.
+               max_grid: int = 512, oversample: float = 2.0, min_grid: int = MIN_GRID) -> int:
+    """Light-view resolution :math:`n = \\lceil s \\cdot 2R / h(\\epsilon) \\rceil` (module docstring), clamped.
+
+    At least ``min_grid`` (:data:`MIN_GRID`), at most ``max_grid``.
 
     With several materials (a multi-object scene, ``mesh`` the merged mesh), :math:`h` is the smallest splat
     spacing of all of them: the most demanding material sets the budget.
@@ -90,6 +98,8 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
     """
     if isinstance(max_grid, bool) or not isinstance(max_grid, int) or max_grid < 2:
         raise ValueError(f"max_grid: expected an int >= 2, got {max_grid!r}")
+    if isinstance(min_grid, bool) or not isinstance(min_grid, int) or min_grid < 1:
+        raise ValueError(f"min_grid: expected an int >= 1, got {min_grid!r}")
     if not (isinstance(oversample, (int, float)) and 0 < oversample < math.inf):
         raise ValueError(f"oversample: expected a positive number, got {oversample!r}")
     materials = [material] if isinstance(material, (Material, nn.Module)) else list(material)
@@ -98,7 +108,7 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
                         f"{material!r}")
     h = min(_spacing(mat, eps) for mat in materials)
     _, radius = bounding_sphere(mesh)
-    return int(min(max_grid, max(2, math.ceil(oversample * 2.0 * float(radius) / h))))
+    return int(min(max_grid, max(min_grid, 2, math.ceil(oversample * 2.0 * float(radius) / h))))
 
 
 
