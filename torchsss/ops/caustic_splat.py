@@ -393,31 +393,36 @@ def splat_caustic_beams(
     chan = torch.arange(c, device=uv.device).view(1, c)
     base = (bidx.view(-1, 1) * c + chan) * (h * w)  # (P, C) offset of each (batch, channel) plane
     offsets = [(k + 0.5) / s - 0.5 for k in range(s)]
+    groups = []  # per quadrant: its Jacobian, twist and the (ox, oy) offsets of its sub-points
     for sx, sy, jx, jy, twist in quads:
-        # the quadrant's Jacobian (map texels per grid texel) and its sub-footprint box
-        a = torch.sqrt(jx * jx + jy * jy) / s  # (P, C, 2): widths along u and v
-        a = a.clamp(1e-6, float(t - 1))
-        for ox in offsets:
-            if ox * sx <= 0:
-                continue
-            for oy in offsets:
-                if oy * sy <= 0:
-                    continue
-                pos = uv_p + ox * jx + oy * jy + (ox * oy) * twist  # (P, C, 2)
-                inside = ok_p & (pos[..., 0] >= -0.5) & (pos[..., 0] <= w - 0.5) & (pos[..., 1] >= -0.5) & (
-                    pos[..., 1] <= h - 0.5)
-                first = torch.floor(pos - 0.5 * a + 0.5).detach()
-                wu, iu = _box_weights(pos[..., 0], a[..., 0], first[..., 0], t)  # (P, C, T)
-                wv, iv = _box_weights(pos[..., 1], a[..., 1], first[..., 1], t)
-                wu = torch.where((iu >= 0) & (iu <= w - 1), wu, torch.zeros_like(wu))
-                wv = torch.where((iv >= 0) & (iv <= h - 1), wv, torch.zeros_like(wv))
-                wgt = wv[..., :, None] * wu[..., None, :]  # (P, C, T, T)
-                index = (iv.clamp(0, h - 1)[..., :, None] * w + iu.clamp(0, w - 1)[..., None, :]).to(torch.int64)
-                index = index + base[..., None, None]
-                if coverage is not None:
-                    wgt = wgt * cover[index]
-                tot = wgt.sum((-2, -1), keepdim=True)
-                wgt = wgt / torch.where(tot > 0, tot, torch.ones_like(tot))
-                wgt = wgt * (inside & (tot[..., 0, 0] > 0))[..., None, None]
-                out = out.view(-1).scatter_add(0, index.reshape(-1), (wgt * sub_f[..., None, None]).reshape(-1))
+        sub = [(ox, oy) for ox in offsets if ox * sx > 0 for oy in offsets if oy * sy > 0]
+        if sub:
+            groups.append((jx, jy, twist, sub))
+    # (K, P, C, 2) rows, one per sub-point: eager takes a quadrant at a time (bounding the (K, P, C, taps, taps)
+    # temporaries); a traced graph takes every sub-point of every quadrant in one pass (one body, not 4 (s/2)^2)
+    groups = [(*(x.expand(len(sub), *x.shape) for x in (jx, jy, tw)), sub) for jx, jy, tw, sub in groups]
+    if is_tracing() and groups:
+        groups = [(*(torch.cat([g[i] for g in groups]) for i in range(3)), [o for g in groups for o in g[3]])]
+    for jx, jy, twist, sub in groups:
+        off = torch.tensor(sub, dtype=work, device=uv.device).view(-1, 1, 1, 2)
+        ox, oy = off[..., :1], off[..., 1:]
+        # the quadrant's Jacobian (map texels per grid texel) and its sub-footprint box: widths along u and v
+        a = (torch.sqrt(jx * jx + jy * jy) / s).clamp(1e-6, float(t - 1))
+        pos = uv_p + ox * jx + oy * jy + (ox * oy) * twist
+        inside = ok_p & (pos[..., 0] >= -0.5) & (pos[..., 0] <= w - 0.5) & (pos[..., 1] >= -0.5) & (
+            pos[..., 1] <= h - 0.5)
+        first = torch.floor(pos - 0.5 * a + 0.5).detach()
+        wu, iu = _box_weights(pos[..., 0], a[..., 0], first[..., 0], t)  # (K, P, C, T)
+        wv, iv = _box_weights(pos[..., 1], a[..., 1], first[..., 1], t)
+        wu = torch.where((iu >= 0) & (iu <= w - 1), wu, torch.zeros_like(wu))
+        wv = torch.where((iv >= 0) & (iv <= h - 1), wv, torch.zeros_like(wv))
+        wgt = wv[..., :, None] * wu[..., None, :]  # (K, P, C, T, T)
+        index = (iv.clamp(0, h - 1)[..., :, None] * w + iu.clamp(0, w - 1)[..., None, :]).to(torch.int64)
+        index = index + base[..., None, None]
+        if coverage is not None:
+            wgt = wgt * cover[index]
+        tot = wgt.sum((-2, -1), keepdim=True)
+        wgt = wgt / torch.where(tot > 0, tot, torch.ones_like(tot))
+        wgt = wgt * (inside & (tot[..., 0, 0] > 0))[..., None, None]
+        out = out.view(-1).scatter_add(0, index.reshape(-1), (wgt * sub_f[..., None, None]).reshape(-1))
     return out.reshape(b, c, h, w).to(out_dtype)
