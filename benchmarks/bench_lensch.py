@@ -399,7 +399,7 @@ def main(argv=None) -> int:
     spot = load_scene(default_scene_path())
     if args.quick:
         cam = dataclasses.replace(spot.camera, width=48, height=48)
-        base = {"atlas": 256, "blend": False}
+        base = {"atlas": 128, "blend": False}
         configs = [("threshold", {**base, "threshold": 1e-2}), ("threshold", {**base, "threshold": 1e-3})]
         records += run_scene("spot", spot.load_mesh(), spot.material, spot.lights, cam, configs, spacing_mm=2.0,
                              raytrace=False)

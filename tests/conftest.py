@@ -38,6 +38,33 @@ def one_thread():
     torch.set_num_threads(before)
 
 
+@pytest.fixture(scope="session")
+def registry_export(tmp_path_factory):
+    """Export an entry of :data:`torchsss.export.registry.EXPORTABLE` once per session: name -> (case, path, seconds).
+
+    The registry is the one list of exported modules: the export tests and the op tests that check an exported
+    file at extreme inputs share its files.
+    """
+    import time
+
+    cache = {}
+
+    def get(name):
+        if name not in cache:
+            from torchsss.export import export_onnx
+            from torchsss.export.registry import export_case
+
+            case = export_case(name)
+            path = tmp_path_factory.mktemp("onnx") / f"{name}.onnx"
+            t0 = time.perf_counter()
+            export_onnx(case.module, case.example_args, path, dynamic_shapes=case.dynamic_shapes,
+                        input_names=case.input_names)
+            cache[name] = (case, path, time.perf_counter() - t0)
+        return cache[name]
+
+    return get
+
+
 @pytest.fixture
 def shared_dir() -> Path:
     """../shared next to the repository (tests may read its data)."""

@@ -25,7 +25,7 @@ def test_bench_lensch_quick_smoke(tmp_path):
     assert len(sweep) == 2
     assert {r["threshold"] for r in sweep} == {1e-2, 1e-3}
     for r in sweep:
-        assert r["scene"] == "spot" and r["atlas"] == 256 and r["pixels"] > 0
+        assert r["scene"] == "spot" and r["atlas"] == 128 and r["pixels"] > 0
         for key in ("rel_rmse", "t_precompute_s", "t_frame_ms"):
             assert isinstance(r[key], float) and math.isfinite(r[key]) and r[key] >= 0, (key, r)
         assert len(r["rel_rmse_rgb"]) == 3 and all(math.isfinite(v) for v in r["rel_rmse_rgb"])

@@ -41,24 +41,10 @@ RTOL = 1e-5
 TINY32 = float(np.finfo(np.float32).tiny)
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    """Export each registry entry once per module run: name -> (case, path, export seconds)."""
-    import time
-
-    cache = {}
-
-    def get(name):
-        if name not in cache:
-            case = export_case(name)
-            path = tmp_path_factory.mktemp("onnx") / f"{name}.onnx"
-            t0 = time.perf_counter()
-            export_onnx(case.module, case.example_args, path, dynamic_shapes=case.dynamic_shapes,
-                        input_names=case.input_names)
-            cache[name] = (case, path, time.perf_counter() - t0)
-        return cache[name]
-
-    return get
+@pytest.fixture
+def exported(registry_export):
+    """Each registry entry exported once per session (tests/conftest.py): name -> (case, path, export seconds)."""
+    return registry_export
 
 
 def _registry_params():
@@ -211,7 +197,7 @@ def _session(path):
 
 
 @pytest.mark.parametrize("name", ["splat_materials", pytest.param("lensch_materials", marks=pytest.mark.slow),
-                                  pytest.param("icdf_materials", marks=pytest.mark.slow)])
+                                  "icdf_materials"])
 def test_material_inputs_render_any_material_in_one_session(name, exported):
     case, path, _ = exported(name)
     sess = _session(path)

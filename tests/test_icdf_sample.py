@@ -513,32 +513,19 @@ def test_bad_levels(fn):
 
 
 # -- ONNX -------------------------------------------------------------------------------------------------------
-class _Sampler(torch.nn.Module):
-    """Test-only wrapper (ops/ holds no nn.Modules). The pyramid depth is frozen: maps up to 2^levels square."""
-
-    def __init__(self, levels):
-        super().__init__()
-        self.levels = levels
-
-    def forward(self, pdf, u):
-        return icdf_sample(pdf, u, levels=self.levels)
-
-
 @pytest.mark.filterwarnings("ignore:`isinstance\\(treespec, LeafSpec\\)` is deprecated:FutureWarning")
 @pytest.mark.filterwarnings("ignore:# The axis name:UserWarning")
-def test_onnx_export_dynamic_sizes(tmp_path):
+def test_onnx_export_dynamic_sizes(registry_export):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnx")
     pytest.importorskip("onnxscript")
-    from torch.export import Dim
+    from torchsss.export import compare_with_eager, run_onnxruntime
 
-    from torchsss.export import compare_with_eager, export_onnx, run_onnxruntime
-
-    levels = 6
-    b, n, h, w = Dim("B", max=64), Dim("N"), Dim("H", max=2**levels), Dim("W", max=2**levels)
-    module = _Sampler(levels)
-    args = (torch.rand(2, 1, 40, 50), torch.rand(2, 100, 2))
-    path = export_onnx(module, args, tmp_path / "icdf.onnx", dynamic_shapes=({0: b, 2: h, 3: w}, {0: b, 1: n}))
+    # the registry's sampler (6 levels, exported at B 2, N 100, 40 x 50; tests/test_export_onnx.py checks it at
+    # its own test shapes), here at extreme inputs
+    case, path, _ = registry_export("icdf_sampler")
+    module = case.module
+    assert module.levels == 6 and [a.shape for a in case.example_args] == [(2, 1, 40, 50), (2, 100, 2)]
 
     # other batch, sample count and map size than exported; an empty map, a delta, a map with holes, extreme u
     g = _gen(22)

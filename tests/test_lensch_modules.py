@@ -156,7 +156,8 @@ def test_gradcheck_wrt_irradiance():
     def on_valid(ev):  # the module as a function of the valid texels only (235 of 576: 2.5x fewer evaluations)
         return module(torch.zeros_like(e).masked_scatter(valid, ev))
 
-    assert torch.autograd.gradcheck(on_valid, (e[valid].requires_grad_(),), eps=1e-6, atol=1e-8)
+    # fast mode: the Jacobian along random directions (705 inputs; the full Jacobian took 16 s)
+    assert torch.autograd.gradcheck(on_valid, (e[valid].requires_grad_(),), eps=1e-6, atol=1e-8, fast_mode=True)
     # the texels outside the valid mask: neither the output nor its gradient depends on them
     with torch.no_grad():
         torch.testing.assert_close(module(e + torch.rand_like(e) * ~valid), module(e), rtol=0, atol=0)

@@ -167,7 +167,6 @@ def _lensch_case() -> ExportCase:
                     "irradiance atlas (B, 3, 64, 64) -> radiosity atlas (B, 3, 64, 64)",
         rtol=_LENSCH_RTOL,
         scale=lambda e: module.local(e).abs() + module.global_response(e).abs(),
-        slow=True,
     )
 
 
@@ -240,7 +239,6 @@ def _global_response_case() -> ExportCase:
                     "irradiance atlas (B, 3, 64, 64) -> global radiosity (B, 3, 64, 64)",
         rtol=_LENSCH_RTOL,
         scale=lambda e: glob(e).abs().amax((-2, -1), keepdim=True).expand_as(e),
-        slow=True,
     )
 
 
@@ -321,7 +319,6 @@ def _icdf_case() -> ExportCase:
         dynamic_shapes=_chang_dyn(False),
         description="ImportanceSampledTranslucency (skin1, 32x32 sphere atlas): irradiance (B, 3, 32, 32), "
                     "u (B, N, 2), receivers (B, M, 3) mm -> radiosity (B, M, 3)",
-        slow=True,
     )
 
 
@@ -337,7 +334,6 @@ def _icdf_materials_case() -> ExportCase:
                     "sigma_s_prime (3,) mm^-1, eta (1,)",
         input_names=("irradiance", "u", "receivers", "sigma_a", "sigma_s_prime", "eta"),
         material_inputs=True,
-        slow=True,
     )
 
 
@@ -369,7 +365,6 @@ def _icdf_sampler_case() -> ExportCase:
         description="IcdfSampler (mip-pyramid descent, 6 levels: maps up to 64x64): pdf (B, 1, H, W), u (B, N, 2) "
                     "-> xy (B, N, 2) pixels, p (B, N)",
         rtol=0.0,
-        slow=True,
     )
 
 
@@ -414,7 +409,6 @@ def _newton_case() -> ExportCase:
                     "valid (B, N)",
         # float32 in both runtimes: bilinear weights round differently (measured 2e-6 mm)
         atol=1e-4,
-        slow=True,
     )
 
 
