@@ -176,6 +176,21 @@ def test_rule_blend_reported():
     assert any("on" in c["rules"]["blend"] for c in fine)
 
 
+def test_lensch_offers_the_unblended_1024_atlas_and_picks_it_as_the_most_accurate():
+    # measured at 128 x 128 on six scenes: atlas 1024 unblended 0.91-5.7%, 512 blended 0.64-10.1% (better on 5 of 6)
+    s = load_scene(default_scene_path())
+    facts = SceneFacts.from_scene(s)
+    lensch = {c["knobs"]["atlas_resolution"]: c for c in candidates(s, facts, 0.03, ["lensch"])}
+    assert set(lensch) == {256, 512, 1024}
+    assert "skipped" in lensch[1024]["rules"]["blend"]
+    knobs, _, note = plan_method(s, "lensch", 0.03)
+    assert knobs["atlas_resolution"] == 1024 and "most accurate" in note
+    # no blending fit in the 1024 build: its predicted setup is below the blended 512 one's
+    pred = {r: predict("lensch", {"atlas_resolution": r}, facts, s.material) for r in (512, 1024)}
+    assert "on" in lensch[512]["rules"]["blend"] and pred[1024]["setup_s"] < pred[512]["setup_s"]
+    assert pred[1024]["error"] < pred[512]["error"]
+
+
 def test_rule_reference_when_cheapest():
     p = plan(_scene(res=8), 0.02)
     assert p.method == "reference" and "reference" in p.reasons

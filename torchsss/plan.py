@@ -21,7 +21,7 @@ miss) and :func:`depth` (the object's thickness in scattering lengths, weighted 
   ~ 1/oversample^2; time ~ splats x footprint pixels.
 * icdf / hybrid: Monte Carlo, :math:`a\\,N^{-p}` with ``a`` growing with ``unlit`` and ``depth`` (hybrid: plus its
   split's floor); time ~ pixels x N.
-* lensch: a floor plus a texel-size term (and a large error without blending); setup (atlas, kernels, throughput,
+* lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput,
   blending) dominates.
 
 "Model only what a scene requires" (:data:`RULES`, each reported in ``Plan.reasons`` when it applies):
@@ -105,10 +105,12 @@ MODEL: dict[str, float] = {
     "hybrid_s0": 0.8, "hybrid_a": 0.0128, "hybrid_p": 1.02, "hybrid_floor": 0.0295, "hybrid_u": 0.622,
     "hybrid_u_floor": 0.865, "hybrid_q_depth": 0.579,
     # lensch: frame = t_texel * res^2 + f0; setup = s0 + s_face * faces + s_kernel * res^2 * k^2 (blending);
-    # error = hypot(floor, c * (texel / (1/sigma_tr)_min)^3); without blending: no_blend. s_kernel: the blending
-    # fit per face pair (1.7e-7 measured on the default scene at atlas 512, k = 11: 5.5 s; 2x for load)
+    # error = hypot(floor, c * (texel / (1/sigma_tr)_min)^3), blended or not (the unblended 7 x 7 sum at atlas 1024
+    # measured 0.91-5.7% where the blended one at 512 measured 0.64-10.1%, 128 x 128, six scenes: a penalty of 15%
+    # for skipping the blend was wrong). s_kernel: the blending fit per face pair, only when blending (1.7e-7
+    # measured on the default scene at atlas 512, k = 11: 5.5 s; 2x for load)
     "lensch_t_texel": 6.0e-6, "lensch_f0": 0.6, "lensch_s0": 2.0, "lensch_s_face": 5.0e-4,
-    "lensch_s_kernel": 3.5e-7, "lensch_floor": 0.0847, "lensch_texel": 0.108, "lensch_no_blend": 0.15,
+    "lensch_s_kernel": 3.5e-7, "lensch_floor": 0.0847, "lensch_texel": 0.108,
     # the fused dipole pair sum (torchsss.ops.fused, compiled; reference, icdf and hybrid frames of >= COLD_WORK pairs;
     # the hybrid's split variant: 44 Mpairs/s warm on the default scene at 128^2, 1 thread):
     # seconds per pair at 1 thread (55-94 Mpairs/s measured in benchmarks/bench_frames.py; 40 here, for load) and
@@ -486,10 +488,11 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         texel = math.sqrt(facts.area_mm2 / (ATLAS_UTILIZATION * res * res))
         err = math.hypot(m["lensch_floor"], m["lensch_texel"] * (texel / min(facts.ell_mm)) ** 3)
         edge = facts.median_edge_mm * math.sqrt(facts.faces / faces)
-        if 5 * texel / edge < BLEND_MIN_REACH:  # no blending (plan_lensch): the near field is missed
-            err = max(err, m["lensch_no_blend"])
         k = min(max(2 * round(0.7 * edge / texel) + 1, 5), 11)  # plan_kernel_size
-        setup = m["lensch_s0"] + m["lensch_s_face"] * faces + m["lensch_s_kernel"] * res * res * k * k + dec_s
+        blend = 5 * texel / edge >= BLEND_MIN_REACH  # plan_lensch: blending only where the kernel reaches
+        setup = m["lensch_s0"] + m["lensch_s_face"] * faces + dec_s
+        if blend:
+            setup += m["lensch_s_kernel"] * res * res * k * k
         return {"error": err, "setup_s": setup, "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
 
@@ -569,11 +572,13 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                     f"{facts.faces} -> {decimate} faces: the vertex throughput would keep ~"
                     f"{facts.throughput_entries:.3g} entries (the profile reaches across the object), over the "
                     f"{MAX_THROUGHPUT_ENTRIES:.0e} that fit in 1-2 GB")}
-            for res in (256, 512):
+            for res in (256, 512, 1024):
                 r = dict(rules)
                 edge = facts.median_edge_mm * math.sqrt(facts.faces / decimate) if decimate else facts.median_edge_mm
                 texel = math.sqrt(facts.area_mm2 / (ATLAS_UTILIZATION * res * res))
                 reach = 5 * texel / edge
+                if res == 1024 and reach >= BLEND_MIN_REACH:
+                    continue  # the blending fit at 1024 (res^2 k^2: a minute, GBs) was never measured to pay
                 r["blend"] = (f"blending on: an 11 x 11 kernel reaches {reach:.2f} median edges"
                               if reach >= BLEND_MIN_REACH else
                               f"blending skipped: even an 11 x 11 kernel reaches only {reach:.2f} median edges "
