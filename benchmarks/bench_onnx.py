@@ -10,7 +10,7 @@ change did not close. ``max_rel_diff`` / ``max_abs_diff`` compare the two runtim
 
 Usage::
 
-    python benchmarks/bench_onnx.py                 # every entry (caustic_map's export takes ~1 min)
+    python benchmarks/bench_onnx.py                 # every entry (about 4 minutes; caustic_map's export ~40 s)
     python benchmarks/bench_onnx.py --quick         # the entries not marked slow, fewer repeats
     python benchmarks/bench_onnx.py --only splat lensch
 """
@@ -58,8 +58,9 @@ REASONS = {
     "hybrid": "as icdf for the global term, plus the local ring pattern's grid_sample lookups",
     "newton": "each of the 5 iterations is a chain of small gathers/grid_samples on (B, N) rays; ORT's per-node "
               "overhead dominates at N = 57",
-    "caustic_map": "the double refraction, back search and splats are hundreds of small nodes (per-node overhead) "
-                   "and its export takes ~1 min (a caustics module: owned by the caustics work, registered as is)",
+    "caustic_map": "the double refraction, the two Newton searches and the beam splats are ~1,400 small nodes on "
+                   "(1, G^2 x C) rays at G = 24 (per-node overhead); the export takes ~40-46 s here (the exporter's "
+                   "per-node cost; the beam splat's sub-points are one pass of the graph)",
     "irradiance_atlas": "elementwise chain over (B, 3, 64, 64): one ORT kernel per node",
     "profile": "elementwise dipole chain: one ORT kernel per node",
     "material": "elementwise dipole chain: one ORT kernel per node",
@@ -67,15 +68,16 @@ REASONS = {
 
 
 NOTES = """
-Notes. ``export_s`` and the absolute times depend on the machine's load (the shared 2-core CI machine ran other
-jobs at a load average of 9-11 during the committed run: export times 2-6x those of a quiet run, e.g. caustic_map
-92 s and hybrid 23 s in an earlier run of the same script); the ratio ``ort_over_eager`` comes from interleaved
-samples and moved by at most ~0.7 between the two runs (the earlier one let the fused compiled kernels in).
+Notes. ``export_s`` and the absolute times depend on the machine's load. The committed run is from a quiet machine
+(only this script running); an earlier run under a load average of 9-11 measured export times 2-6x these (e.g.
+caustic_map 594 s, before its beam splat was traced as one pass) and ORT/eager ratios 0.7-1.2 lower for the
+pair-tensor entries (icdf 2.17, hybrid 2.45: load slowed eager more than onnxruntime).
 Entries at or below 1.5: profile, material, irradiance_atlas, local_response, icdf_sampler, newton (ORT
-2-3x faster), lensch (1.3-1.4), caustic_map (1.1-1.5).
+2-3x faster), lensch (1.3).
 Above 1.5: the dipole evaluated over large channels-last pair/tap tensors (splat, icdf, hybrid and the
-material-input variants) and the gather + scatter_add sparse product (global_response), with the reasons in the
-table. ``Pow`` by a constant is rewritten to ``Mul``/``Sqrt`` in every exported file (splat graph 30 -> 23 ms).
+material-input variants), the gather + scatter_add sparse product (global_response) and the caustic map's many
+small nodes, with the reasons in the table. ``Pow`` by a constant is rewritten to ``Mul``/``Sqrt`` in every
+exported file (splat graph 30 -> 23 ms).
 """
 
 
