@@ -19,6 +19,8 @@ Usage::
 
     python benchmarks/bench_planner.py            # 9 scenes (about an hour)
     python benchmarks/bench_planner.py --quick    # 2 scenes at 48x48
+    python benchmarks/bench_planner.py --no-sweep --name planner_hits   # the hit rate only (no trade sweep:
+        # the time ratio is then against the reference and the other planned renders of the scene; ~30 min)
 """
 
 from __future__ import annotations
@@ -94,6 +96,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", default=None, help="run the scenes whose names contain one of these")
     parser.add_argument("--merge", type=Path, default=None,
                         help="a JSON list of verification records of an earlier run to merge with this run's")
+    parser.add_argument("--no-sweep", action="store_true",
+                        help="skip the trade sweep: hit rate only (time ratio against the truth and the plans)")
     args = parser.parse_args()
     setup_benchmark(parser, args)
     start = time.perf_counter()
@@ -107,7 +111,7 @@ def main() -> None:
         truth_s = truth.stats["setup_s"] + truth.stats["frame_median_s"]
         faces = scene.load_mesh().num_faces
         rows = [{"method": "reference", "knobs": {}, "time_s": truth_s, "rel_rmse": 0.0, "kind": "truth"}]
-        for method, knobs in sweep(faces):
+        for method, knobs in ([] if args.no_sweep else sweep(faces)):
             try:
                 out, _ = run_config(scene, method, knobs, 1, torch.float32)
             except ValueError as err:  # e.g. Lensch's throughput over its memory cap: refused, not run
