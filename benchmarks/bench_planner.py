@@ -159,6 +159,7 @@ def main() -> None:
                 "worst_ratio": max((r["time_ratio"] for r in records), default=float("nan")),
                 "worst_error_over_tolerance": max((r["rel_rmse"] / r["tolerance"] for r in records),
                                                   default=float("nan"))}]
+    Path(args.out_dir).mkdir(parents=True, exist_ok=True)
     (Path(args.out_dir) / f"{args.name}_rows.json").write_text(json.dumps(rows_all, indent=1))
     finish_benchmark(args.name, records + summary, args.out_dir, start=start,
                      columns={"verification": ["scene", "resolution", "faces", "tolerance", "method", "knobs",
