@@ -222,16 +222,27 @@ class LocalResponse(nn.Module):
         block = max(1, (32 << 20) // per_row)
         out = None
         for lo in range(0, height, block):
-            rows = self._kernel_rows(lo, min(height, lo + block))
+            rows = self._kernel_rows(lo, min(height, lo + block), compact=True)
             if out is None:
                 out = rows.new_empty((rows.shape[0], height, *rows.shape[2:]))
             out[:, lo:lo + block] = rows
         return out
 
-    def _kernel_rows(self, lo: int, hi: int) -> Tensor:
-        """:meth:`kernels` for the receiver rows ``lo:hi``: :math:`(C, hi - lo, W, k, k)`."""
+    def _kernel_rows(self, lo: int, hi: int, compact: bool = False) -> Tensor:
+        """:meth:`kernels` for the receiver rows ``lo:hi``: :math:`(C, hi - lo, W, k, k)`.
+
+        ``compact`` (eager, no autograd): the profile is evaluated only for receivers with a source in their window
+        (about the atlas utilisation, 45% of the texels); the others' kernels are zero either way.
+        """
         area = self.area[lo:hi]
-        rd = self.material(self.distance[lo:hi].unsqueeze(-1))  # (h, W, k, k, C)
+        if compact:
+            live = (area != 0).flatten(2).any(-1)  # (h, W)
+            dist = self.distance[lo:hi][live].unsqueeze(-1)  # (n, k, k, 1)
+            rd_live = self.material(dist)
+            rd = rd_live.new_zeros((*area.shape, rd_live.shape[-1]))
+            rd[live] = rd_live
+        else:
+            rd = self.material(self.distance[lo:hi].unsqueeze(-1))  # (h, W, k, k, C)
         k = area.unsqueeze(-1) * rd
         scale = None if self.self_scale is None else self.self_scale[lo:hi]
         disk = _disk_integral(self.material, self.self_area[lo:hi], scale) if self.self_term == "disk" else None
