@@ -1,8 +1,10 @@
 """The planner (torchsss.plan): each "model only what a scene requires" rule on a scene built to trigger it, the
 frames trade-off, measured trades, and the rules' physics (shadows, source decimation) against full renders."""
 
+import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -116,6 +118,22 @@ def test_rule_decimate_atlas_methods():
     assert any("detail beyond" in x for x in p.skipped)
     # a coarse mesh is kept
     assert detail_faces(SceneFacts.from_scene(s, sphere(10.0, 2))) is None
+
+
+def test_lensch_decimation_fits_the_throughput_cap_on_the_bunny(shared_dir):
+    # the 50 mm example bunny: at 0.6 of the cap the planned source mesh was estimated at 1.01e7 entries and the
+    # builder refused it (benchmarks/bench_frames.py); the plan must pass the builder's own check
+    from torchsss.geometry.lensch import MAX_THROUGHPUT_ENTRIES, check_entries
+    from torchsss.modules.material import material_module
+    from torchsss.pipelines.atlas_view import source_mesh
+
+    s = load_scene(Path(__file__).resolve().parents[1] / "examples" / "scenes" / "bunny.json")
+    s = dataclasses.replace(s, camera=dataclasses.replace(s.camera, width=256, height=256))
+    knobs, _, _ = plan_method(s, "lensch", 0.03)
+    mesh = source_mesh(s.load_mesh(), knobs["source_faces"])
+    est = check_entries(mesh, material_module(s.material, dtype=mesh.vertices.dtype), threshold=1e-5,
+                        relative=True, max_entries=MAX_THROUGHPUT_ENTRIES)
+    assert 0.2 * MAX_THROUGHPUT_ENTRIES <= est <= MAX_THROUGHPUT_ENTRIES
 
 
 def test_rule_samples_from_tolerance():

@@ -562,10 +562,11 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                                 f"below half of it")
             out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
         elif method == "lensch":
-            # 0.6 of the cap: the estimate scaled by faces^2 was 1.6x low on the bunny decimated to 8,845 faces (on
-            # the default scene it was within 1%: 6.30M estimated, 6.36M kept); a cut under 5% is not worth its
-            # error (the default scene cut 5,856 -> 4,665 faces measured 4.9% instead of 2.6% at 128 x 128)
-            fit = int(facts.faces * math.sqrt(0.6 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
+            # 0.45 of the cap: the full mesh's estimate scaled by faces^2 was 1.6-1.7x low on the bunny decimated to
+            # 7-9k faces (at 0.6 the 50 mm example bunny was planned 1.01e7 entries and refused; on the default scene
+            # it was within 1%: 6.30M estimated, 6.36M kept); a cut under 5% is not worth its error (the default
+            # scene cut 5,856 -> 4,665 faces measured 4.9% instead of 2.6% at 128 x 128)
+            fit = int(facts.faces * math.sqrt(0.45 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
             if fit < 0.95 * facts.faces and (decimate is None or fit < decimate):
                 decimate = max(500, fit)
                 rules = {**rules, "decimate": (
