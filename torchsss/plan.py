@@ -62,6 +62,7 @@ from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK
 from torchsss.physics.budget import splat_alias_error
 from torchsss.physics.materials import Material
+from torchsss.pipelines.atlas_view import source_mesh
 from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
@@ -497,12 +498,27 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
 
 
+def _throughput_fit(scene: Scene, mesh: Mesh | None, material: torch.nn.Module, faces: int) -> int:
+    """Lensch's throughput decimation checked on the decimated mesh itself.
+
+    ``faces``, or fewer when the vertex throughput of the mesh decimated to ``faces`` is estimated over 0.9 of
+    :data:`MAX_THROUGHPUT_ENTRIES` (one decimation and one estimate; the builder refuses past the cap).
+    """
+    mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
+    est = estimate_throughput_entries(source_mesh(mesh, faces), material, rows=64)
+    if est <= 0.9 * MAX_THROUGHPUT_ENTRIES:
+        return faces
+    return int(faces * math.sqrt(0.8 * MAX_THROUGHPUT_ENTRIES / est))
+
+
 def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
-               methods: Sequence[str] | None = None, model: dict | None = None) -> list[dict]:
+               methods: Sequence[str] | None = None, model: dict | None = None, *,
+               mesh: Mesh | None = None) -> list[dict]:
     """Every configuration the planner considers: ``{"method", "knobs", "decimate", "rules"}`` dicts.
 
     The knobs follow the rules (:data:`RULES`): the icdf/hybrid N from the tolerance, the reference's source
-    decimation and shadows, the atlas methods' mesh decimation.
+    decimation and shadows, the atlas methods' mesh decimation. ``mesh``: the scene's mesh if already loaded (Lensch's
+    throughput decimation is checked on the decimated mesh).
     """
     allowed = applicable_methods(scene)
     methods = [m for m in (methods or allowed) if m in allowed]
@@ -562,13 +578,14 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                                 f"below half of it")
             out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
         elif method == "lensch":
-            # 0.45 of the cap: the full mesh's estimate scaled by faces^2 was 1.6-1.7x low on the bunny decimated to
-            # 7-9k faces (at 0.6 the 50 mm example bunny was planned 1.01e7 entries and refused; on the default scene
-            # it was within 1%: 6.30M estimated, 6.36M kept); a cut under 5% is not worth its error (the default
-            # scene cut 5,856 -> 4,665 faces measured 4.9% instead of 2.6% at 128 x 128)
-            fit = int(facts.faces * math.sqrt(0.45 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
+            # 0.6 of the cap from the full mesh's estimate scaled by faces^2 (on the default scene within 1%: 6.30M
+            # estimated, 6.36M kept), then checked on the decimated mesh itself: on the bunny the scaling ran
+            # 1.6-1.7x low (the 50 mm example bunny at 256 x 256 was planned 1.01e7 entries, over the cap, and the
+            # builder refused it); a cut under 5% is not worth its error (the default scene cut 5,856 -> 4,665 faces
+            # measured 4.9% instead of 2.6% at 128 x 128)
+            fit = int(facts.faces * math.sqrt(0.6 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
             if fit < 0.95 * facts.faces and (decimate is None or fit < decimate):
-                decimate = max(500, fit)
+                decimate = max(500, _throughput_fit(scene, mesh, prof.module, fit))
                 rules = {**rules, "decimate": (
                     f"{facts.faces} -> {decimate} faces: the vertex throughput would keep ~"
                     f"{facts.throughput_entries:.3g} entries (the profile reaches across the object), over the "
@@ -640,7 +657,7 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     facts = SceneFacts.from_scene(scene, mesh)
     measured = _measured(trade)
     rows = []
-    for cand in candidates(scene, facts, float(tolerance), methods, model):
+    for cand in candidates(scene, facts, float(tolerance), methods, model, mesh=mesh):
         knobs = dict(cand["knobs"])
         pred = predict(cand["method"], knobs, facts, scene.material, sources=cand.get("_sources"),
                        decimate=cand["decimate"], model=model)
