@@ -6,9 +6,10 @@ filter or the kernels reading the gutter or the wrong chart). On the default sce
 at 64x64 the camera pixels whose atlas texel lies within ~1 mm (10 texels at 512) of a chart edge form the seam band
 (~300 of 938 pixels); the test compares the signed mean error against the reference there with the one elsewhere.
 Measured (N = 16384 for icdf/hybrid): hybrid +0.49% in the band vs +0.23% elsewhere, icdf +0.53% vs +0.09%, Lensch
-(atlas 256, blended) +3.25% vs +3.64% (at its planned default, atlas 1024 unblended, -0.32% vs +0.15%, measured once;
-the test keeps 256 for time: 6 s against 17 s). The chart-less hybrid split that issue 16 reported as "bright seams" (its filter read
-across charts and gutters) measures -13.6% vs -1.9% here: the negative control that shows the test can fail.
+(atlas 256, blended) +3.25% vs +3.64% (at its planned default, atlas 1024 unblended, -0.32% vs +0.15%, measured
+once; the test keeps 256 for time: 6 s against 17 s). The chart-less hybrid split that issue 16 reported as "bright
+seams" (its filter read across charts and gutters) measures -13.6% vs -1.9% here: the negative control that shows
+the test can fail.
 """
 
 from __future__ import annotations
