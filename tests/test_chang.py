@@ -257,28 +257,7 @@ def test_levels_fixed_at_construction_from_the_atlas(lit_sphere):
     assert torch.equal(got_xy, xy) and torch.equal(got_p, p)
 
 
-@pytest.mark.filterwarnings("ignore:`isinstance\\(treespec, LeafSpec\\)` is deprecated:FutureWarning")
-@pytest.mark.filterwarnings("ignore:# The axis name:UserWarning")
-def test_onnx_export_with_default_levels(tmp_path):
-    """Built with the defaults (no ``levels=``), the hybrid (and the importance sampler in it) exports."""
-    pytest.importorskip("onnxruntime")
-    pytest.importorskip("onnxscript")
-    from torchsss.export import compare_with_eager, export_onnx
-
-    atlas = build_atlas(sphere(6.0, 1), 32, kernel_size=3)
-    module = HybridTranslucency.from_atlas(atlas, DipoleMaterial.from_preset("skin1"), grid=64)
-    g = torch.Generator().manual_seed(6)
-    pts = atlas.position.flatten(2).transpose(1, 2)[:, atlas.chart_mask.flatten()][:, ::20]
-
-    def args(b):
-        return (torch.rand(b, 3, 32, 32, generator=g) * atlas.valid_mask, torch.rand(b, 64, 2, generator=g),
-                pts.expand(b, -1, -1) + 0.05 * b, torch.rand(b, pts.shape[1], 2, generator=g))
-
-    batch = torch.export.Dim("B", max=64)
-    path = export_onnx(module, args(2), tmp_path / "hybrid.onnx", dynamic_shapes=({0: batch},) * 4)
-    res = compare_with_eager(module, path, args(3))
-    assert res["shapes"] == [(3, pts.shape[1], 3)] and res["compared"] > 0
-    assert res["max_rel_diff"] <= 1e-5 and res["zero_pattern_match"], res
+# The hybrid built with the defaults (no levels=) exports: the registry's 'hybrid' entry (tests/test_export_onnx.py).
 
 
 def test_batched_inputs_match_single(lit_sphere):

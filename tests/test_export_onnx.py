@@ -196,8 +196,7 @@ def _session(path):
     return ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
 
 
-@pytest.mark.parametrize("name", ["splat_materials", pytest.param("lensch_materials", marks=pytest.mark.slow),
-                                  "icdf_materials"])
+@pytest.mark.parametrize("name", ["splat_materials", "lensch_materials", "icdf_materials"])
 def test_material_inputs_render_any_material_in_one_session(name, exported):
     case, path, _ = exported(name)
     sess = _session(path)

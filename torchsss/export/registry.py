@@ -190,7 +190,6 @@ def _lensch_materials_case() -> ExportCase:
         scale=scale,
         input_names=("irradiance", "sigma_a", "sigma_s_prime", "eta"),
         material_inputs=True,
-        slow=True,
     )
 
 
@@ -346,7 +345,6 @@ def _hybrid_case() -> ExportCase:
         dynamic_shapes=_chang_dyn(True),
         description="HybridTranslucency (skin1, 32x32 sphere atlas, 8x16 local pattern): irradiance (B, 3, 32, 32), "
                     "u (B, N, 2), receivers (B, M, 3) mm, receivers_uv (B, M, 2) -> radiosity (B, M, 3)",
-        slow=True,
     )
 
 
