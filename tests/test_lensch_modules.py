@@ -244,6 +244,19 @@ def test_extremes_tiny_and_huge_r_max():
             assert float(bg[chart].mean()) > 20 * float(bl[chart].mean())
 
 
+def test_row_block_kernels_match_the_one_expression(small):
+    """The eager row blocks (profile evaluated only where a receiver has a source) against the autograd path."""
+    _, atlas = small
+    local = LocalResponse(local_kernel_geometry(atlas, 5), _material("marble"))
+    with torch.no_grad():
+        blocks = local.kernels()
+    with torch.enable_grad():
+        whole = local.kernels().detach()
+    live = (local.area != 0).flatten(2).any(-1)
+    assert 0 < int(live.sum()) < live.numel()  # some receivers are skipped: the test covers the compaction
+    torch.testing.assert_close(blocks, whole, rtol=1e-12, atol=0)
+
+
 def test_cached_kernels_follow_material_edits(small):
     """Relighting reuses the evaluated kernels/throughput, but an edited material is never served stale."""
     mesh, atlas = small

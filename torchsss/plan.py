@@ -654,6 +654,7 @@ def plan(scene: Scene, tolerance: float = 0.02, frames: int = 1, *, methods: Seq
 
 
 def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, mesh) -> Plan:
+    mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh  # once, for the facts and the candidates
     facts = SceneFacts.from_scene(scene, mesh)
     measured = _measured(trade)
     rows = []

@@ -313,7 +313,6 @@ class GlobalResponse(nn.Module):
             dist = dist * vertex_md[throughput.rows]
         self.register_buffer("distance", dist)
         self.register_buffer("source_area", throughput.source_area.clone())
-        self.register_buffer("diagonal", (throughput.rows == throughput.cols).to(dist.dtype), persistent=False)
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
         # not per nonzero: on 6M nonzeros the closed-form cumulative for all of them took 8 s of a first frame)
         self.register_buffer("diagonal_index", (throughput.rows == throughput.cols).nonzero()[:, 0],
@@ -346,8 +345,7 @@ class GlobalResponse(nn.Module):
         disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
         if disk is None:
             return vals
-        d = self.diagonal.unsqueeze(-1)
-        return vals * (1.0 - d) + torch.zeros_like(vals).index_copy(0, self.diagonal_index, disk)
+        return vals.index_copy(0, self.diagonal_index, disk)
 
     def vertex_radiosity(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, N, C)` vertex radiosity :math:`B^g`."""
