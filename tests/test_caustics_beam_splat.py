@@ -41,6 +41,42 @@ def test_uniform_beam_is_the_exact_binned_irradiance(scale, offset):
     np.testing.assert_allclose(out.numpy(), ref, rtol=0, atol=1e-9 * ref.max())
 
 
+@pytest.mark.parametrize("subdivisions", [1, 2, 3, 5])
+def test_odd_and_even_subdivisions_keep_the_flux(subdivisions):
+    """Every one of the s x s sub-points deposits: an odd s has a middle row and column of offset 0 (they were
+    dropped once, so s = 1 splatted nothing and s = 3 lost 5/9 of the flux)."""
+    g, size = 16, 24
+    pts = grid_points(g, 0.37, (0.11, -0.23), half=0.9)
+    flux = torch.full((1, g, g, 1), 0.5, dtype=F64)
+    out = splat_caustic_beams(pts, flux, torch.ones(1, g, g, 1, dtype=torch.bool), EYE, (size, size),
+                              subdivisions)[0, 0]
+    assert out.sum().item() == pytest.approx(0.5 * g * g, rel=1e-12)
+    ref = binned_square(size, np.array((0.11, -0.23)) - 0.9 * 0.37, np.array((0.11, -0.23)) + 0.9 * 0.37, 0.5 * g * g)
+    np.testing.assert_allclose(out.numpy(), ref, rtol=0, atol=1e-9 * ref.max())
+
+
+def test_traced_single_pass_matches_the_eager_quadrants(monkeypatch):
+    """The traced formulation (every grid point, all sub-points in one pass) gives the eager result (grid points
+    that carry flux only, one quadrant at a time), with discontinuities, invalid points and a coverage mask."""
+    import torchsss.ops.caustic_splat as cs
+
+    gen = torch.Generator().manual_seed(3)
+    g = 14
+    pts = grid_points(g, 0.8).expand(2, g, g, 2, 3).clone()
+    pts = pts + 0.02 * torch.randn(pts.shape, generator=gen, dtype=F64)
+    pts[:, 3:5, 4:7] += 0.9  # a fold: neighbours farther than max_stretch_px
+    flux = torch.rand(2, g, g, 2, generator=gen, dtype=F64)
+    valid = torch.rand(2, g, g, 2, generator=gen) > 0.15
+    cover = torch.rand(2, 1, 19, 19, generator=gen) > 0.1
+    vp = EYE.expand(2, 4, 4)
+    for s in (2, 3, 4):
+        eager = splat_caustic_beams(pts, flux, valid, vp, (19, 19), s, max_stretch_px=4.0, coverage=cover)
+        with monkeypatch.context() as m:
+            m.setattr(cs, "is_tracing", lambda: True)
+            traced = splat_caustic_beams(pts, flux, valid, vp, (19, 19), s, max_stretch_px=4.0, coverage=cover)
+        torch.testing.assert_close(traced, eager, rtol=0, atol=1e-13)
+
+
 def test_disc_keeps_its_flux_and_single_points_land_in_their_texel():
     g = 20
     pts = grid_points(g, 0.6)

@@ -322,6 +322,48 @@ def _atan_scene(size=128):
     return cam, tex, o, r, d_star
 
 
+@pytest.mark.parametrize("method", ["shah", "newton"])
+@pytest.mark.parametrize("fallback", [True, False])
+def test_export_loop_matches_the_python_loop(method, fallback, monkeypatch):
+    """Exported, the iterations run as one ``while_loop`` body (an ONNX Loop); run eagerly, that body gives exactly
+    what the Python loop gives, diagnostics included (an oscillating scene exercises the bisection branch)."""
+    import torchsss.ops.newton_raphson as nr
+
+    for iterations in (2, 6):
+        cam, tex, o, r, _ = _atan_scene()
+        plain = _run(o, r, tex, cam, iterations, method, fallback=fallback, return_info=True)
+        with monkeypatch.context() as m:
+            m.setattr(nr, "is_exporting", lambda: True)
+            looped = _run(o, r, tex, cam, iterations, method, fallback=fallback, return_info=True)
+        assert torch.equal(plain[0], looped[0]) and torch.equal(plain[1], looped[1])
+        for key in ("oscillated", "fallback", "residual"):
+            assert torch.equal(plain[2][key], looped[2][key]), key
+
+
+def test_light_centre_is_the_null_vector_of_the_lookup_rows():
+    """The light's centre from the Levi-Civita contraction: a perspective light's eye solves rows 0, 1 and 3 of
+    ``view_proj`` (against torch.linalg.solve); an orthographic light's direction is their null vector, oriented so
+    that clip depth grows along it."""
+    from torchsss.ops.newton_raphson import _sight_centre
+
+    gen = torch.Generator().manual_seed(11)
+    mats = torch.randn(6, 4, 4, generator=gen, dtype=F64)
+    k = _sight_centre(mats)
+    rows = mats[:, [0, 1, 3]]
+    eye = torch.linalg.solve(rows[:, :, :3], -rows[:, :, 3:])[..., 0]
+    torch.testing.assert_close(k[:, :3], eye, rtol=1e-10, atol=1e-10)
+    assert torch.equal(k[:, 3], torch.ones(6, dtype=F64))
+    cams = [_light(ortho=True, eye=e) for e in ((0.0, 0.0, 100.0), (30.0, -20.0, 60.0))]
+    ortho = torch.stack([c.view_proj(dtype=F64) for c in cams])
+    k = _sight_centre(ortho)
+    assert torch.equal(k[:, 3], torch.zeros(2, dtype=F64))
+    direction = -k[:, :3]  # the line of sight runs along K_w x - K_xyz = -K_xyz, away from the light
+    for c, dvec in zip(cams, direction):
+        towards = torch.tensor(c.target, dtype=F64) - torch.tensor(c.eye, dtype=F64)
+        torch.testing.assert_close(dvec / dvec.norm(), towards / towards.norm(), rtol=0, atol=1e-12)
+    assert (rows[:, :, :3] @ eye[..., None] + rows[:, :, 3:]).abs().max() < 1e-9
+
+
 def test_oscillation_detected_and_rescued_by_bisection():
     cam, tex, o, r, d_star = _atan_scene()
     # without the fallback: the second step's residual grows across the root, then the estimate leaves the texture
@@ -603,8 +645,8 @@ class _Intersect(torch.nn.Module):
     """Test-only wrapper: ops/ stays free of nn.Modules."""
 
     def forward(self, origins, directions, positions, view_proj):
-        # Newton with the fallback: its graph holds every branch (Newton step, Shah's update, bisection). Two
-        # iterations keep the export time down (each adds ~150 graph nodes).
+        # Newton with the fallback: its graph holds every branch (Newton step, Shah's update, bisection), in one
+        # ONNX Loop body for two or more iterations.
         d, valid, info = newton_raphson_intersect(
             origins, directions, positions, view_proj, 2, "newton", return_info=True
         )

@@ -181,4 +181,18 @@ def test_onnx_export_dynamic_sizes(tmp_path):
     assert np.abs(d - d_64).max() <= 2e-3 and np.abs(d_e.numpy() - d_64).max() <= 2e-3  # both against float64
     np.testing.assert_allclose(residual, info_e["residual"].numpy(), rtol=0, atol=2e-3)
 
+    # the iterations are one ONNX Loop: eight of them give the same graph as two, and the same answers as eager
+    import onnx
+
+    module8 = NewtonRaphsonSearch(8, "newton", return_info=True)
+    path8 = export_onnx(module8, args(2, 40, 24, 20, seed=4), tmp_path / "search8.onnx", dynamic_shapes=dyn)
+    graphs = [onnx.load(str(p)).graph for p in (path, path8)]
+    assert [sum(n.op_type == "Loop" for n in g.node) for g in graphs] == [1, 1]
+    assert len(graphs[0].node) == len(graphs[1].node)
+    d8, valid8, osc8, _fb8, _res8 = run_onnxruntime(path8, test)
+    with torch.no_grad():
+        d8_e, valid8_e, info8_e = module8(*test)
+    assert np.array_equal(valid8, valid8_e.numpy()) and np.array_equal(osc8, info8_e["oscillated"].numpy())
+    np.testing.assert_allclose(d8, d8_e.numpy(), rtol=0, atol=2e-3)
+
     # the default options (Shah's estimator, 5 iterations): the registry's 'newton' entry (tests/test_export_onnx.py)

@@ -203,6 +203,7 @@ def export_onnx(
             output_names=out_names,
             external_data=False,
             verbose=False,
+            custom_translation_table=_translations(),
         )
     model = onnx.load(str(path), load_external_data=False)
     if rewrite_pow and rewrite_constant_pow(model):
@@ -213,6 +214,21 @@ def export_onnx(
     if dynamic_shapes is not None:
         verify_dynamic_dims(model, declared_dynamic_dims(module, args, dynamic_shapes, in_names), path)
     return path
+
+
+def _translations() -> dict[Any, Any]:
+    """ONNX translations for aten ops the exporter's library lacks.
+
+    ``aten.sym_stride.int``: the exporter leaves stride checks of a traced ``while_loop`` body (the Newton
+    searches' ONNX ``Loop``) in the graph; an ONNX tensor is dense, so the stride of ``dim`` is the product of the
+    sizes after it.
+    """
+    from onnxscript import opset18 as op
+
+    def sym_stride(self: Any, dim: int = 0) -> Any:
+        return op.ReduceProd(op.Shape(self, start=dim + 1), keepdims=0)
+
+    return {torch.ops.aten.sym_stride.int: sym_stride}
 
 
 def _nest_varargs(module: nn.Module, dynamic_shapes: Any) -> Any:

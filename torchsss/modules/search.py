@@ -21,9 +21,9 @@ class NewtonRaphsonSearch(nn.Module):
     ``forward(origins, directions, positions_texture, view_proj)`` returns exactly what
     :func:`~torchsss.ops.newton_raphson.newton_raphson_intersect` returns for the same inputs and the options
     given here (see there and its module docstring for the update rules, the safeguards, the lookup conventions
-    and the validity rules). The loop is unrolled over ``iterations`` with tensor ops only, so the module
-    differentiates, runs under ``torch.compile`` and exports to ONNX; every iteration adds about 150 graph nodes
-    (``"newton"``; half as many for ``"shah"``). No parameters or buffers.
+    and the validity rules). The iterations use tensor ops only, so the module differentiates, runs under
+    ``torch.compile`` and exports to ONNX; exported, two or more iterations are one ONNX ``Loop`` (the graph and
+    the export time do not grow with ``iterations``). No parameters or buffers.
 
     Args:
         iterations: number of updates of the estimate (>= 0).

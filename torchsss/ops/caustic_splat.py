@@ -234,14 +234,6 @@ def _beam_inputs(points: object, flux: object, valid: object, view_proj: object,
         raise ValueError("view_proj: expected finite values, got a non-finite entry")
 
 
-def _shift(x: Tensor, axis: int, step: int) -> Tensor:
-    """``x`` moved by ``step`` (+1 / -1) along ``axis``: out[i] = x[i + step], edge-replicated (masked later)."""
-    n = x.shape[axis]
-    if step > 0:
-        return torch.cat([x.narrow(axis, 1, n - 1), x.narrow(axis, n - 1, 1)], axis)
-    return torch.cat([x.narrow(axis, 0, 1), x.narrow(axis, 0, n - 1)], axis)
-
-
 def _box_weights(c: Tensor, a: Tensor, first: Tensor, taps: int) -> tuple[Tensor, Tensor]:
     """Overlap of the box [c - a/2, c + a/2] with the texels first .. first + taps - 1 (centres at integers), / a."""
     idx = first[..., None] + torch.arange(taps, dtype=c.dtype, device=c.device)
@@ -327,59 +319,53 @@ def splat_caustic_beams(
     uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
     f = torch.where(ok & torch.isfinite(flux), flux.to(work), torch.zeros_like(flux, dtype=work))
     limit2 = float(max_stretch_px) ** 2
+    hg, wg = uv.shape[1], uv.shape[2]
 
-    def side(axis: int, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        nb = _shift(uv, axis, step)
-        nb_ok = _shift(ok, axis, step)
-        n = uv.shape[axis]
-        edge = torch.arange(n, device=uv.device) == (n - 1 if step > 0 else 0)
-        edge = edge.view([-1 if d == axis else 1 for d in range(ok.dim())])
-        d = (nb - uv) * step  # forward slope (texels per grid texel)
-        use = ok & nb_ok & ~edge & ((d * d).sum(-1) <= limit2)
-        return d, use, nb, nb_ok & ~edge
+    # the 3 x 3 neighbourhood of every grid point, (3 [dy], 3 [dx], B, Hg, Wg, C, 3): (u, v, valid), zero and invalid
+    # outside the grid (a handful of graph nodes for any grid size)
+    val = torch.cat([uv, ok[..., None].to(work)], -1)
+    pad = torch.zeros_like(val.narrow(1, 0, 1))
+    val = torch.cat([pad, val, pad], 1)
+    pad = torch.zeros_like(val.narrow(2, 0, 1))
+    val = torch.cat([pad, val, pad], 2)  # (B, Hg + 2, Wg + 2, C, 3)
+    cols = torch.stack([val.narrow(2, k, wg) for k in range(3)])
+    hood = torch.stack([cols.narrow(2, k, hg) for k in range(3)])
+    # index 0 / 1 of a side axis: the step +1 / -1 (the neighbour at position 2 / 0 of the neighbourhood)
+    side_index = torch.tensor([2, 0], device=uv.device)
+    sign = torch.tensor([1.0, -1.0], dtype=work, device=uv.device).view(2, 1, 1, 1, 1, 1)
+    nb_x = hood[1].index_select(0, side_index)  # (2 [sx], B, Hg, Wg, C, 3)
+    nb_y = hood.index_select(0, side_index)[:, 1]  # (2 [sy], ...)
+    diag = hood.index_select(0, side_index).index_select(1, side_index).transpose(0, 1)  # (2 [sx], 2 [sy], ...)
 
-    # axis 2: grid columns (x); axis 1: grid rows
-    dx_p, ux_p, nx_p, _ = side(2, 1)
-    dx_m, ux_m, nx_m, _ = side(2, -1)
-    dy_p, uy_p, ny_p, _ = side(1, 1)
-    dy_m, uy_m, ny_m, _ = side(1, -1)
-    zero = torch.zeros_like(dx_p)
+    def sides(nb: Tensor) -> tuple[Tensor, Tensor]:
+        """Slopes (texels per grid texel) for both sides of one axis, and where the side's own neighbour serves."""
+        d = (nb[..., :2] - uv) * sign
+        nat = ok & (nb[..., 2] > 0.5) & ((d * d).sum(-1) <= limit2)
+        # a quadrant takes its own side's difference, else the opposite side's, else none (a point deposit)
+        jac = torch.where(nat[..., None], d, torch.where(nat.flip(0)[..., None], d.flip(0), torch.zeros_like(d)))
+        return jac, nat
 
-    def slope(d_main: Tensor, u_main: Tensor, d_other: Tensor, u_other: Tensor) -> tuple[Tensor, Tensor]:
-        sel = torch.where(u_main[..., None], d_main, torch.where(u_other[..., None], d_other, zero))
-        return sel, u_main
+    jx, nat_x = sides(nb_x)
+    jy, nat_y = sides(nb_y)
+    # the diagonal neighbour gives the bilinear (twist) term of the quadrant's grid cell; it exists only inside the
+    # grid (rows/cols at the edge already fail nat_x / nat_y)
+    twist = diag[..., :2] - nb_x[:, None, ..., :2] - nb_y[None, ..., :2] + uv
+    twist = twist * (sign * sign.view(1, 2, 1, 1, 1, 1))[..., None]
+    use_t = nat_x[:, None] & nat_y[None] & (diag[..., 2] > 0.5) & ((twist * twist).sum(-1) <= limit2)
+    twist = torch.where(use_t[..., None], twist, torch.zeros_like(twist))
+    # per quadrant q = 2 i_x + i_y (i = 0 on the + side): (4, B, Hg, Wg, C, 2)
+    quad_x = jx[:, None].expand(2, 2, *uv.shape).reshape(4, *uv.shape)
+    quad_y = jy[None].expand(2, 2, *uv.shape).reshape(4, *uv.shape)
+    quad_t = twist.reshape(4, *uv.shape)
 
-    quads = []
-    for sx in (1, -1):
-        jx, nat_x = slope(dx_p, ux_p, dx_m, ux_m) if sx > 0 else slope(dx_m, ux_m, dx_p, ux_p)
-        for sy in (1, -1):
-            jy, nat_y = slope(dy_p, uy_p, dy_m, uy_m) if sy > 0 else slope(dy_m, uy_m, dy_p, uy_p)
-            # the diagonal neighbour for the bilinear (twist) term of this quadrant's grid cell
-            diag = _shift(_shift(uv, 2, sx), 1, sy)
-            diag_ok = _shift(_shift(ok, 2, sx), 1, sy)
-            nb_x = nx_p if sx > 0 else nx_m
-            nb_y = ny_p if sy > 0 else ny_m
-            twist = (diag - nb_x - nb_y + uv) * (sx * sy)
-            use_t = nat_x & nat_y & diag_ok & ((twist * twist).sum(-1) <= limit2)
-            # the diagonal exists only inside the grid: rows/cols at the edge already fail nat_x / nat_y
-            twist = torch.where(use_t[..., None], twist, zero)
-            quads.append((sx, sy, jx, jy, twist))
-
+    bidx = torch.arange(b, device=uv.device).view(b, 1, 1).expand(b, hg, wg).reshape(-1)
+    uv_p, f_p, ok_p = (x.reshape(-1, *x.shape[3:]) for x in (uv, f, ok))
+    quad_x, quad_y, quad_t = (x.reshape(4, -1, c, 2) for x in (quad_x, quad_y, quad_t))
     if not is_tracing():
         # eager: only the grid points that carry flux (the shapes are data-dependent; tracing keeps them all)
-        keep = ok.any(-1).reshape(-1)
-        idx = keep.nonzero()[:, 0]
-
-        def pick(x: Tensor) -> Tensor:
-            return x.reshape(b * x.shape[1] * x.shape[2], *x.shape[3:]).index_select(0, idx)
-        bidx = torch.arange(b, device=uv.device).view(b, 1, 1).expand(b, uv.shape[1], uv.shape[2]).reshape(-1)
-        bidx = bidx.index_select(0, idx)
-        uv_p, f_p, ok_p = pick(uv), pick(f), pick(ok)
-        quads = [(sx, sy, pick(jx), pick(jy), pick(tw)) for sx, sy, jx, jy, tw in quads]
-    else:
-        bidx = torch.arange(b, device=uv.device).view(b, 1, 1).expand(b, uv.shape[1], uv.shape[2]).reshape(-1)
-        uv_p, f_p, ok_p = (x.reshape(-1, *x.shape[3:]) for x in (uv, f, ok))
-        quads = [(sx, sy, *(x.reshape(-1, *x.shape[3:]) for x in (jx, jy, tw))) for sx, sy, jx, jy, tw in quads]
+        idx = ok.any(-1).reshape(-1).nonzero()[:, 0]
+        bidx, uv_p, f_p, ok_p = (x.index_select(0, idx) for x in (bidx, uv_p, f_p, ok_p))
+        quad_x, quad_y, quad_t = (x.index_select(1, idx) for x in (quad_x, quad_y, quad_t))
 
     out = torch.zeros(b, c, h * w, dtype=work, device=uv.device)
     if coverage is not None:
@@ -392,17 +378,18 @@ def splat_caustic_beams(
     sub_f = f_p / float(s * s)  # (P, C)
     chan = torch.arange(c, device=uv.device).view(1, c)
     base = (bidx.view(-1, 1) * c + chan) * (h * w)  # (P, C) offset of each (batch, channel) plane
+    # the s x s sub-points, each in the quadrant its offset points into (an offset of 0, the middle row or column of
+    # an odd s, goes to the + side)
     offsets = [(k + 0.5) / s - 0.5 for k in range(s)]
-    groups = []  # per quadrant: its Jacobian, twist and the (ox, oy) offsets of its sub-points
-    for sx, sy, jx, jy, twist in quads:
-        sub = [(ox, oy) for ox in offsets if ox * sx > 0 for oy in offsets if oy * sy > 0]
-        if sub:
-            groups.append((jx, jy, twist, sub))
+    subpoints = [(2 * (ox < 0) + (oy < 0), ox, oy) for ox in offsets for oy in offsets]
     # (K, P, C, 2) rows, one per sub-point: eager takes a quadrant at a time (bounding the (K, P, C, taps, taps)
-    # temporaries); a traced graph takes every sub-point of every quadrant in one pass (one body, not 4 (s/2)^2)
-    groups = [(*(x.expand(len(sub), *x.shape) for x in (jx, jy, tw)), sub) for jx, jy, tw, sub in groups]
-    if is_tracing() and groups:
-        groups = [(*(torch.cat([g[i] for g in groups]) for i in range(3)), [o for g in groups for o in g[3]])]
+    # temporaries); a traced graph takes all of them in one pass (one body in the graph)
+    chunks = [subpoints] if is_tracing() else [[p for p in subpoints if p[0] == q] for q in range(4)]
+    groups = []
+    for chunk in chunks:
+        if chunk:
+            rows = torch.tensor([p[0] for p in chunk], device=uv.device)
+            groups.append((*(x.index_select(0, rows) for x in (quad_x, quad_y, quad_t)), [p[1:] for p in chunk]))
     for jx, jy, twist, sub in groups:
         off = torch.tensor(sub, dtype=work, device=uv.device).view(-1, 1, 1, 2)
         ox, oy = off[..., :1], off[..., 1:]

@@ -56,20 +56,24 @@ ray is not necessarily converged: Shah's iterates approach the hit slowly for ra
 sight (grazing rays), and either method can stall at a kink or an occlusion edge of the texture. Ask
 ``return_info=True`` for the residual or set ``max_residual`` (a texel or two) to drop such rays.
 
-The loop is unrolled in Python over a fixed number of iterations with tensor ops only (``torch.where`` for
-every branch), so the function runs batched, differentiates (through ``grid_sample``'s bilinear weights, the
-finite difference and the selected branches) and exports to ONNX with the sizes dynamic.
+The iterations run a fixed number of times with tensor ops only (``torch.where`` for every branch), so the
+function runs batched, differentiates (through ``grid_sample``'s bilinear weights, the finite difference and the
+selected branches) and exports to ONNX with the sizes dynamic. Eagerly and under ``torch.compile`` it is a Python
+loop; exported (``torch.export`` / ONNX) with two or more iterations it is one ``while_loop`` body, an ONNX
+``Loop``, so the graph and the export time do not grow with ``iterations`` (the same step function, tested equal
+to the Python loop).
 """
 
 from __future__ import annotations
 
+import itertools
 import numbers
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchsss._checks import check_shape, check_tensor, compute_dtype, is_tracing, skip_value_checks
+from torchsss._checks import check_shape, check_tensor, compute_dtype, is_exporting, is_tracing, skip_value_checks
 
 __all__ = ["lookup_positions", "newton_raphson_intersect"]
 
@@ -118,16 +122,29 @@ def _prepare_texture(positions: Tensor) -> Tensor:
     return torch.cat([clean, finite.to(positions.dtype)], dim=1)
 
 
-def _lookup(points: Tensor, tex: Tensor, mat: Tensor) -> tuple[Tensor, Tensor]:
-    """Receiver positions (B, N, 3) seen through world ``points`` (B, N, 3), and the hit mask (B, N)."""
-    # clip = M [x, 1]^T, written as a batched matmul against the transposed 3x4 block, plus the translation column
-    clip = torch.matmul(points, mat[:, :, :3].transpose(1, 2)) + mat[:, None, :, 3]
-    w = clip[..., 3]
+def _grid_matrix(mat: Tensor) -> tuple[Tensor, Tensor]:
+    """(B, 3, 3) linear block and (B, 1, 3) offset mapping world points to (x, -y, w) clip coordinates.
+
+    grid_sample's y runs from the top row (-1) to the bottom row (+1) while NDC y points up, so row 1 is negated
+    here once rather than the NDC in every lookup (exact: a negation rounds nothing). Built outside any loop (a
+    constant made inside a traced loop body does not export).
+    """
+    rows = torch.stack([mat[:, 0], -mat[:, 1], mat[:, 3]], 1)  # (B, 3, 4)
+    # two separate tensors, not views of one (a loop body's inputs may not alias each other)
+    return rows[:, :, :3].transpose(1, 2).contiguous(), rows[:, None, :, 3].clone()
+
+
+def _lookup(points: Tensor, tex: Tensor, grid_mat: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+    """Receiver positions (B, N, 3) seen through world ``points`` (B, N, 3), and the hit mask (B, N).
+
+    ``grid_mat`` is :func:`_grid_matrix` of the light's ``view_proj``.
+    """
+    clip = torch.matmul(points, grid_mat[0]) + grid_mat[1]  # (B, N, 3): x, -y, w
+    w = clip[..., 2]
     front = w > 0
-    ndc = clip[..., :2] / torch.where(front, w, torch.ones_like(w))[..., None]
-    inside = front & (ndc[..., 0].abs() <= 1.0) & (ndc[..., 1].abs() <= 1.0)
-    # grid_sample's y runs from the top row (-1) to the bottom row (+1); NDC y points up.
-    grid = torch.where(inside[..., None], ndc * torch.tensor([1.0, -1.0], dtype=ndc.dtype, device=ndc.device), 0.0)
+    ndc = clip[..., :2] / torch.where(front, w, torch.ones_like(w))[..., None]  # grid_sample's (x, y)
+    inside = front & (ndc.abs() <= 1.0).all(-1)
+    grid = torch.where(inside[..., None], ndc, 0.0)
     s = F.grid_sample(tex, grid.unsqueeze(2), mode="bilinear", padding_mode="border", align_corners=False)
     s = s[..., 0].transpose(1, 2)  # (B, N, 4)
     cover = s[..., 3]
@@ -136,13 +153,18 @@ def _lookup(points: Tensor, tex: Tensor, mat: Tensor) -> tuple[Tensor, Tensor]:
     return p, hit
 
 
-def _det3(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    """Determinant of the 3 x 3 matrices with columns a, b, c (each (..., 3)), written out (exports anywhere)."""
-    return (
-        a[..., 0] * (b[..., 1] * c[..., 2] - b[..., 2] * c[..., 1])
-        - b[..., 0] * (a[..., 1] * c[..., 2] - a[..., 2] * c[..., 1])
-        + c[..., 0] * (a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1])
-    )
+def _levi_civita4_rows() -> list[list[float]]:
+    """The 4-D Levi-Civita symbol as a 16 x 16 table: row ``4 j + k``, column ``4 i + l`` holds eps_ijkl."""
+    table = [[0.0] * 16 for _ in range(16)]
+    for perm in itertools.permutations(range(4)):
+        i, j, k, m = perm
+        inversions = sum(a > b for n, a in enumerate(perm) for b in perm[n + 1:])
+        table[4 * j + k][4 * i + m] = -1.0 if inversions % 2 else 1.0
+    return table
+
+
+#: :func:`_levi_civita4_rows`, built once (a Python table, so a traced graph gets it as one constant).
+_LEVI_CIVITA4 = _levi_civita4_rows()
 
 
 def _sight_centre(mat: Tensor) -> Tensor:
@@ -155,17 +177,12 @@ def _sight_centre(mat: Tensor) -> Tensor:
     (:math:`C_w \\ne 0`) uses :math:`K = C / C_w`, so the direction is :math:`x - \\text{eye}`; an orthographic one
     flips C so that the direction :math:`-C_{xyz}` makes clip depth (row 2) grow.
     """
-    rows = mat[:, [0, 1, 3], :]  # (B, 3, 4)
-    cols = [rows[:, :, j] for j in range(4)]
-    c = torch.stack(
-        [
-            _det3(cols[1], cols[2], cols[3]),
-            -_det3(cols[0], cols[2], cols[3]),
-            _det3(cols[0], cols[1], cols[3]),
-            -_det3(cols[0], cols[1], cols[2]),
-        ],
-        dim=-1,
-    )
+    # C_i = eps_ijkl R0_j R1_k R3_l with R the rows 0, 1, 3: the Laplace expansion of det [e_i; R0; R1; R3], i.e.
+    # (-1)^i times the 3 x 3 minor without column i; as two products (a handful of graph nodes, not ~100)
+    b = mat.shape[0]
+    outer = (mat[:, 0, :, None] * mat[:, 1, None, :]).reshape(b, 16)  # R0_j R1_k at 4 j + k
+    eps = torch.tensor(_LEVI_CIVITA4, dtype=mat.dtype, device=mat.device)
+    c = (torch.matmul(outer, eps).reshape(b, 4, 4) * mat[:, None, 3, :]).sum(-1)
     cw = c[:, 3:4]
     perspective = cw != 0
     k_persp = c / torch.where(perspective, cw, torch.ones_like(cw))
@@ -218,7 +235,8 @@ def lookup_positions(points: Tensor, positions_texture: Tensor, view_proj: Tenso
     out_dtype, work = compute_dtype(points, positions_texture, view_proj)
     pts = points.to(work)  # a non-finite point fails the frustum test (comparisons with NaN are False)
     p, hit = _lookup(
-        pts, _prepare_texture(positions_texture.to(work)), _batched_matrix(view_proj, points.shape[0], work)
+        pts, _prepare_texture(positions_texture.to(work)),
+        _grid_matrix(_batched_matrix(view_proj, points.shape[0], work)),
     )
     p = torch.where(hit[..., None], p, torch.zeros_like(p))
     return p.to(out_dtype), hit
@@ -360,53 +378,74 @@ def newton_raphson_intersect(
     tex = _prepare_texture(positions_texture.to(work))
     mat = _batched_matrix(view_proj, origins.shape[0], work)
     centre = _sight_centre(mat)[:, None, :]  # (B, 1, 4)
+    grid_mat = _grid_matrix(mat)
     newton = method == "newton"
 
     def evaluate(dist: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Receiver point, hit mask, residual f, distance origin-receiver (Shah's update), point x at ``dist``."""
         x = o + dist[..., None] * r
-        p, hit = _lookup(x, tex, mat)
+        p, hit = _lookup(x, tex, grid_mat)
         sight = centre[..., 3:] * x - centre[..., :3]
         f = ((p - x) * sight).sum(-1) / _norm(sight)
         return p, hit, f, _norm(p - o), x
 
-    alive = ray_ok
-    oscillated = torch.zeros_like(ray_ok)
-    used_fallback = torch.zeros_like(ray_ok)
-    d_prev: Tensor | None = None
-    f_prev: Tensor | None = None
-    for _ in range(iterations):
+    def step(d: Tensor, d_prev: Tensor, f_prev: Tensor, alive: Tensor, oscillated: Tensor,
+             used_fallback: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """One update of the estimate; the state of the first one holds f_prev = NaN (no comparison fires)."""
+        # a loop body traced for export sees the sizes of the tensors it closes over afresh: restate them
+        b, n = d.shape
+        for x, sizes in ((o, (b, n, 3)), (r, (b, n, 3)), (centre, (b, 1, 4)), (grid_mat[0], (b, 3, 3)),
+                         (grid_mat[1], (b, 1, 3))):
+            for have, want in zip(x.shape, sizes):
+                torch._check(have == want)
+        torch._check(tex.shape[0] == b)
+        torch._check(tex.shape[1] == 4)
         _p, hit, f, dist_po, _x = evaluate(d)
         alive = alive & hit
         scale = d.abs() + dist_po
         active = alive & (f.abs() > tol * scale)  # converged rays stop moving
 
         if newton:
-            step = fd_step * scale
-            step = torch.where(step > 0, step, torch.ones_like(step))
-            _pq, hit_q, f_q, _dq, _xq = evaluate(d + step)
-            slope = (f_q - f) / step
+            h = fd_step * scale
+            h = torch.where(h > 0, h, torch.ones_like(h))
+            _pq, hit_q, f_q, _dq, _xq = evaluate(d + h)
+            slope = (f_q - f) / h
             usable = hit_q & (slope.abs() > _MIN_SLOPE)
             slope = torch.where(usable, slope, torch.ones_like(slope))
             d_new = torch.where(usable, d - f / slope, dist_po)
         else:
             d_new = dist_po
 
-        if d_prev is not None and f_prev is not None:
-            flag = active & (f.abs() >= f_prev.abs())
-            oscillated = oscillated | flag
-            if fallback:
-                # the last two estimates bracket the root and the last step did not help: bisect them
-                bisect = flag & ((f > 0) != (f_prev > 0)) & (f != 0) & (f_prev != 0)
-                used_fallback = used_fallback | bisect
-                d_new = torch.where(bisect, 0.5 * (d + d_prev), d_new)
-        d_prev, f_prev = d, f
-        d = torch.where(active, d_new, d)
+        flag = active & (f.abs() >= f_prev.abs())  # False against the NaN of the first iteration
+        oscillated = oscillated | flag
+        if fallback:
+            # the last two estimates bracket the root and the last step did not help: bisect them
+            bisect = flag & ((f > 0) != (f_prev > 0)) & (f != 0) & (f_prev != 0)
+            used_fallback = used_fallback | bisect
+            d_new = torch.where(bisect, 0.5 * (d + d_prev), d_new)
+        return torch.where(active, d_new, d), d, f, alive, oscillated, used_fallback
+
+    state = (d, d.clone(), torch.full_like(d, float("nan")), ray_ok, torch.zeros_like(ray_ok),
+             torch.zeros_like(ray_ok))
+    if iterations >= 2 and is_exporting():
+        # one loop body in the graph (an ONNX Loop), not `iterations` unrolled copies: the export time and the
+        # file stay the same for any iteration count
+        from torch._higher_order_ops.while_loop import while_loop
+
+        def body(k: Tensor, *st: Tensor) -> tuple[Tensor, ...]:
+            # a loop body may not hand an input back as an output (d becomes d_prev): copy those
+            return (k + 1, *(x.clone() if any(x is y for y in st) else x for x in step(*st)))
+
+        state = tuple(while_loop(lambda k, *st: k < iterations, body,
+                                 (torch.zeros((), dtype=torch.int64, device=d.device), *state))[1:])
+    else:
+        for _ in range(iterations):
+            state = step(*state)
+    d, _d_prev, f_prev, alive, oscillated, used_fallback = state
 
     p, hit, f, dist_po, x = evaluate(d)
     alive = alive & hit
-    if f_prev is not None:
-        oscillated = oscillated | (alive & (f.abs() > tol * (d.abs() + dist_po)) & (f.abs() >= f_prev.abs()))
+    oscillated = oscillated | (alive & (f.abs() > tol * (d.abs() + dist_po)) & (f.abs() >= f_prev.abs()))
     q = ((p - o) * r).sum(-1)  # the receiver's coordinate along the ray: > 0 when it lies ahead of the origin
     residual = _norm(p - x)
     residual = torch.where(alive, residual, torch.zeros_like(residual))
