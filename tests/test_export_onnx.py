@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -68,7 +69,7 @@ def test_registry_has_every_per_frame_module():
 
 
 @pytest.mark.parametrize("name", _registry_params())
-def test_registry_entry_matches_eager_at_export_and_test_size(name, exported):
+def test_registry_entry_matches_eager_at_export_and_test_size(name, exported, tmp_path, monkeypatch):
     case, path, seconds = exported(name)
     print(f"{name}: export {seconds:.1f} s")
     # The test size must differ from the export size, or frozen sizes would go unnoticed.
@@ -106,6 +107,11 @@ def test_registry_entry_matches_eager_at_export_and_test_size(name, exported):
         den = np.abs(e) if scale is None else np.maximum(np.abs(e), scale.numpy().astype(np.float64))
         assert np.max(np.abs(o[normal] - e[normal]) / den[normal]) <= case.rtol
         np.testing.assert_array_equal(e == 0, o == 0)
+
+    # the export script's own check of the entry (``onnx_export.py NAME`` / ``--all``), on this file
+    script = _load_script()
+    monkeypatch.setattr(script, "export_onnx", lambda module, args, out, **kw: Path(shutil.copy(path, out)))
+    assert script.run_entry(name, tmp_path / f"{name}.onnx")["ok"]
 
 
 # -- dynamic dimensions verified ------------------------------------------------------------------------------------
@@ -276,6 +282,25 @@ def test_cli_list_and_bad_name(capsys):
     with pytest.raises(SystemExit):
         script.main(["profile", "--opset", "17"])
     assert "--opset" in capsys.readouterr().err
+
+
+def test_cli_all_runs_every_entry(tmp_path, monkeypatch, capsys):
+    """``onnx_export.py --all`` is ``run_entry`` over the whole registry (the registry test above runs
+    ``run_entry`` itself on each file): every entry is attempted, and one failure fails the run."""
+    script = _load_script()
+    seen = []
+
+    def fake(name, path, *a):
+        seen.append((name, Path(path).name))
+        return {"name": name, "ok": name != "splat", "export_s": 0.0}
+
+    monkeypatch.setattr(script, "run_entry", fake)
+    assert script.main(["--all", "--out", str(tmp_path)]) == 1
+    assert seen == [(n, f"{n}.onnx") for n in sorted(EXPORTABLE)]
+    out = capsys.readouterr().out
+    assert out.count("FAIL") == 1 and all(n in out for n in EXPORTABLE)
+    monkeypatch.setattr(script, "run_entry", lambda name, *a: {"name": name, "ok": True, "export_s": 0.0})
+    assert script.main(["--all", "--out", str(tmp_path)]) == 0
 
 
 def test_export_case_unknown_name_lists_valid_names():

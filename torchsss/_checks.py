@@ -18,6 +18,7 @@ from torch import Tensor
 
 __all__ = [
     "as_float_tensor",
+    "cast",
     "check_broadcastable",
     "check_devices",
     "check_finite",
@@ -207,6 +208,15 @@ def compute_dtype(*tensors: Tensor) -> tuple[torch.dtype, torch.dtype]:
     for t in tensors[1:]:
         out = torch.promote_types(out, t.dtype)
     return out, (torch.float32 if out in _REDUCED else out)
+
+
+def cast(x: Tensor, dtype: torch.dtype) -> Tensor:
+    """``x.to(dtype)``, or ``x`` itself when it already has that dtype.
+
+    The same values either way; a traced graph (``torch.export`` / ONNX) gets no node for the no-op (``x.to`` of
+    the same dtype records two, and every node costs export time).
+    """
+    return x if x.dtype == dtype else x.to(dtype)
 
 
 def check_broadcastable(**tensors: Tensor) -> torch.Size:

@@ -192,19 +192,21 @@ def export_onnx(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with _EvalMode(module), torch.no_grad():
-        torch.onnx.export(
+        program = torch.onnx.export(
             module,
             args,
-            path,
+            None,
             dynamo=True,
             opset_version=opset,
             dynamic_shapes=_nest_varargs(module, dynamic_shapes),
             input_names=in_names,
             output_names=out_names,
-            external_data=False,
             verbose=False,
             custom_translation_table=_translations(),
+            optimize=False,
         )
+    _optimize(program.model)
+    program.save(path, external_data=False)
     model = onnx.load(str(path), load_external_data=False)
     if rewrite_pow and rewrite_constant_pow(model):
         onnx.save(model, str(path))
@@ -214,6 +216,39 @@ def export_onnx(
     if dynamic_shapes is not None:
         verify_dynamic_dims(model, declared_dynamic_dims(module, args, dynamic_shapes, in_names), path)
     return path
+
+
+def _optimize(model: Any) -> None:
+    """The exporter's optimizer (``onnxscript.optimizer.optimize_ir``) without its pattern rewriter, in place.
+
+    Inlining, constant folding (with ONNX shape inference) and removal of unused nodes, twice or until nothing
+    changes, then constants lifted to initializers, duplicates and common subexpressions merged. The rewriter's
+    ~46 rules (Cast/Reshape/Transpose cleanups, Conv/BatchNorm fusions, ...) were most of the optimizer's time
+    (``CausticMap``: 4.5 s of 4.5 s against 0.7 s without them; 1,225 against 1,251 nodes; onnxruntime ran the
+    file without them no slower, 17.1 against 18.2 ms), and onnxruntime's own graph optimizer makes the same
+    cleanups when it loads the file.
+    """
+    import onnx_ir as ir
+    from onnx_ir.passes import common
+    from onnxscript import optimizer
+
+    optimizer.inline(model)
+    for _ in range(2):
+        folded = optimizer.fold_constants_ir(model, onnx_shape_inference=True)
+        before = len(list(model.graph))
+        optimizer.remove_unused_nodes(model)
+        if not folded.modified and len(list(model.graph)) == before:
+            break
+    ir.passes.Sequential(
+        common.RemoveUnusedFunctionsPass(),
+        common.RemoveUnusedOpsetsPass(),
+        common.LiftConstantsToInitializersPass(lift_all_constants=True, size_limit=0),
+        common.LiftSubgraphInitializersToMainGraphPass(),
+        common.DeduplicateInitializersPass(),
+        common.CommonSubexpressionEliminationPass(),
+        common.OutputFixPass(),
+        common.NameFixPass(),
+    )(model)
 
 
 def _translations() -> dict[Any, Any]:

@@ -67,6 +67,7 @@ from torch import Tensor, nn
 
 from torchsss._checks import (
     as_float_tensor,
+    cast,
     check_devices,
     check_finite,
     check_finite_inputs,
@@ -109,9 +110,9 @@ def _unit(v: Tensor) -> Tensor:
     norm, so normals of any non-zero length work (``sum(v * v)`` underflows near 1e-20 in float32).
     """
     m = v.abs().amax(-1, keepdim=True)
-    v = v / torch.where(m > 0, m, torch.ones_like(m))
+    v = v / torch.where(m > 0, m, 1.0)
     n2 = (v * v).sum(-1, keepdim=True)
-    return v / torch.sqrt(torch.where(n2 > 0, n2, torch.ones_like(n2)))
+    return v / torch.sqrt(torch.where(n2 > 0, n2, 1.0))
 
 
 def _flat(img: Tensor) -> Tensor:
@@ -333,16 +334,16 @@ class CausticMap(nn.Module):
         b = front_position.shape[0]
         hg, wg = front_position.shape[-2], front_position.shape[-1]
         c = intensity.shape[1]
-        ior = self.ior.to(dtype).expand(c) if self.ior.numel() == 1 else self.ior.to(dtype)
-        k_a = self.absorption.to(dtype).expand(c) if self.absorption.numel() == 1 else self.absorption.to(dtype)
-        view_proj = view_proj.to(dtype)
+        ior = cast(self.ior, dtype).expand(c) if self.ior.numel() == 1 else cast(self.ior, dtype)
+        k_a = cast(self.absorption, dtype).expand(c) if self.absorption.numel() == 1 else cast(self.absorption, dtype)
+        view_proj = cast(view_proj, dtype)
 
         mask = _flat(front_mask)[..., 0] != 0  # (B, N)
         p = _flat(front_position)
-        n_f = _flat(front_normal.to(dtype))
+        n_f = _flat(cast(front_normal, dtype))
         ok = mask & torch.isfinite(p).all(-1) & torch.isfinite(n_f).all(-1)
-        p = torch.where(ok[..., None], p, torch.zeros_like(p))
-        n_f = torch.where(ok[..., None], n_f, torch.ones_like(n_f))
+        p = torch.where(ok[..., None], p, 0.0)
+        n_f = torch.where(ok[..., None], n_f, 1.0)
         n = p.shape[1]
 
         # incident direction and power through each grid texel
@@ -357,19 +358,19 @@ class CausticMap(nn.Module):
         if self.flux == "texel":
             clip = torch.matmul(p, view_proj[:, :, :3].transpose(1, 2)) + view_proj[:, None, :, 3]
             cw = clip[..., 3:4]
-            cw = torch.where(cw != 0, cw, torch.ones_like(cw))
+            cw = torch.where(cw != 0, cw, 1.0)
             a = view_proj[:, None, :, :3]  # (B, 1, 4, 3)
             gx = (a[:, :, 0] - clip[..., 0:1] / cw * a[:, :, 3]) / cw
             gy = (a[:, :, 1] - clip[..., 1:2] / cw * a[:, :, 3]) / cw
             cross = torch.linalg.cross(gx, gy)
             jac = torch.sqrt((cross * cross).sum(-1))
-            area = (4.0 / (hg * wg)) / torch.where(jac > 0, jac, torch.ones_like(jac))
-            falloff = torch.where(w_l[..., 0] > 0, 1.0 / torch.where(dist2 > 0, dist2, torch.ones_like(dist2)),
+            area = (4.0 / (hg * wg)) / torch.where(jac > 0, jac, 1.0)
+            falloff = torch.where(w_l[..., 0] > 0, 1.0 / torch.where(dist2 > 0, dist2, 1.0),
                                   torch.ones_like(dist2))
-            power = (area * falloff * (jac > 0))[..., None] * intensity.to(dtype)[:, None, :]  # (B, N, C)
+            power = (area * falloff * (jac > 0))[..., None] * cast(intensity, dtype)[:, None, :]  # (B, N, C)
         else:
-            count = ok.to(dtype).sum(-1).clamp_min(1.0).view(b, 1, 1)
-            power = cos_i[..., None] / count * intensity.to(dtype)[:, None, :]
+            count = cast(ok, dtype).sum(-1).clamp_min(1.0).view(b, 1, 1)
+            power = cos_i[..., None] / count * cast(intensity, dtype)[:, None, :]
         power = power * ok[..., None]
         n_grid = n
         compact = None
@@ -407,16 +408,16 @@ class CausticMap(nn.Module):
                 weight = weight * w2
 
         d_r, hit = self.search(
-            origin.reshape(b, n * c, 3), out_dir.reshape(b, n * c, 3), receiver_position.to(dtype), view_proj
+            origin.reshape(b, n * c, 3), out_dir.reshape(b, n * c, 3), cast(receiver_position, dtype), view_proj
         )
         d_r = d_r.reshape(b, n, c)
         alive = alive & hit.reshape(b, n, c)
         if self.mode == "single":
             inside_len = d_r  # Shah: a single surface (water) attenuates over the way to the receiver
         q = origin + d_r[..., None] * out_dir
-        q = torch.where(alive[..., None], q, torch.zeros_like(q))
+        q = torch.where(alive[..., None], q, 0.0)
         flux = power * weight * torch.exp(-k_a * inside_len)
-        flux = torch.where(alive, flux, torch.zeros_like(flux))
+        flux = torch.where(alive, flux, 0.0)
         if compact is not None:
             q = q.new_zeros(b, n_grid, c, 3).index_copy(1, compact, q)
             flux = flux.new_zeros(b, n_grid, c).index_copy(1, compact, flux)
@@ -466,7 +467,7 @@ class CausticMap(nn.Module):
         dtype = p.dtype
         bmask = back_mask != 0
         nan = torch.full_like(back_position, float("nan"))
-        back_tex = torch.where(bmask, back_position.to(dtype), nan.to(dtype))
+        back_tex = torch.where(bmask, cast(back_position, dtype), cast(nan, dtype))
         origin = p[:, :, None, :].expand(exp_c)
         if self.back == "search":
             d, found = self.back_search(origin.reshape(b, n * c, 3), t1.reshape(b, n * c, 3), back_tex, view_proj)
@@ -477,10 +478,10 @@ class CausticMap(nn.Module):
             pb, found = lookup_positions(p, back_tex, view_proj)
             dv = pb - p
             d = torch.sqrt((dv * dv).sum(-1).clamp_min(0.0))
-            d = torch.where(found, d, torch.zeros_like(d))[..., None].expand(b, n, c)
+            d = torch.where(found, d, 0.0)[..., None].expand(b, n, c)
             found = found[..., None].expand(b, n, c)
         x_b = origin + d[..., None] * t1
-        normal_tex = torch.where(bmask, back_normal.to(dtype), nan.to(dtype))
+        normal_tex = torch.where(bmask, cast(back_normal, dtype), cast(nan, dtype))
         n_b, hit = lookup_positions(x_b.reshape(b, n * c, 3), normal_tex, view_proj)
         n_b = _unit(n_b.reshape(exp_c))
         hit = hit.reshape(b, n, c) & ((n_b * n_b).sum(-1) > 0)

@@ -22,7 +22,7 @@ class NewtonRaphsonSearch(nn.Module):
     :func:`~torchsss.ops.newton_raphson.newton_raphson_intersect` returns for the same inputs and the options
     given here (see there and its module docstring for the update rules, the safeguards, the lookup conventions
     and the validity rules). The iterations use tensor ops only, so the module differentiates, runs under
-    ``torch.compile`` and exports to ONNX; exported, two or more iterations are one ONNX ``Loop`` (the graph and
+    ``torch.compile`` and exports to ONNX; exported, four or more iterations are one ONNX ``Loop`` (the graph and
     the export time do not grow with ``iterations``). No parameters or buffers.
 
     Args:

@@ -36,7 +36,7 @@ import numbers
 import torch
 from torch import Tensor
 
-from torchsss._checks import check_shape, check_tensor, compute_dtype, is_tracing
+from torchsss._checks import cast, check_shape, check_tensor, compute_dtype, is_tracing
 
 __all__ = ["default_kernel_size", "splat_caustic_beams", "splat_caustics"]
 
@@ -154,21 +154,21 @@ def splat_caustics(
     b = flux.shape[0]
     c = flux.shape[2]
 
-    pts = points.to(work)
+    pts = cast(points, work)
     if not per_channel:
         pts = pts.unsqueeze(2)  # (B, N, 1, 3)
         valid = valid.unsqueeze(2)
-    mat = view_proj.to(work)
+    mat = cast(view_proj, work)
     # clip = M [x, 1]^T for every point (B, N, c', 4)
     clip = torch.einsum("bnci,bji->bncj", pts, mat[:, :, :3]) + mat[:, None, None, :, 3]
     cw = clip[..., 3]
     front = cw > 0
-    safe_w = torch.where(front, cw, torch.ones_like(cw))
+    safe_w = torch.where(front, cw, 1.0)
     ndc_x = clip[..., 0] / safe_w
     ndc_y = clip[..., 1] / safe_w
     inside = front & (ndc_x.abs() <= 1.0) & (ndc_y.abs() <= 1.0) & valid
-    ndc_x = torch.where(inside, ndc_x, torch.zeros_like(ndc_x))
-    ndc_y = torch.where(inside, ndc_y, torch.zeros_like(ndc_y))
+    ndc_x = torch.where(inside, ndc_x, 0.0)
+    ndc_y = torch.where(inside, ndc_y, 0.0)
     # continuous pixel coordinates with texel centres at integers (column from the left, row from the top)
     u = (ndc_x + 1.0) * (0.5 * w) - 0.5
     v = (1.0 - ndc_y) * (0.5 * h) - 0.5
@@ -185,15 +185,15 @@ def splat_caustics(
     # and tiny sigmas cannot underflow every tap
     big = torch.full_like(d2, float("inf"))
     d2_min = torch.where(inside_tap, d2, big).amin(dim=(-2, -1), keepdim=True)
-    d2_min = torch.where(torch.isfinite(d2_min), d2_min, torch.zeros_like(d2_min))
+    d2_min = torch.where(torch.isfinite(d2_min), d2_min, 0.0)
     g = torch.exp(-(d2 - d2_min).clamp_min(0.0) / (2.0 * float(sigma_px) ** 2))
-    g = torch.where(inside_tap, g, torch.zeros_like(g))
+    g = torch.where(inside_tap, g, 0.0)
     total = g.sum(dim=(-2, -1), keepdim=True)
-    weight = g / torch.where(total > 0, total, torch.ones_like(total))
-    weight = torch.where(inside[..., None, None], weight, torch.zeros_like(weight))
+    weight = g / torch.where(total > 0, total, 1.0)
+    weight = torch.where(inside[..., None, None], weight, 0.0)
 
     index = (rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)).to(torch.int64)  # (B, N, c', K, K)
-    f = torch.where(torch.isfinite(flux), flux, torch.zeros_like(flux)).to(work)  # (B, N, C); non-finite -> 0
+    f = torch.where(torch.isfinite(flux), flux, 0.0).to(work)  # (B, N, C); non-finite -> 0
     contrib = weight * f[..., None, None]  # (B, N, C, K, K)
     contrib = contrib.permute(0, 2, 1, 3, 4).reshape(b, c, -1)
     index = index.permute(0, 2, 1, 3, 4).reshape(b, index.shape[2], -1).expand(b, c, -1)
@@ -308,16 +308,16 @@ def splat_caustic_beams(
     s, t = int(subdivisions), int(taps)
     out_dtype, work = compute_dtype(points, flux, view_proj)
     b, c = flux.shape[0], flux.shape[3]
-    mat = view_proj.to(work)
-    clip = torch.einsum("bijcx,bkx->bijck", points.to(work), mat[:, :, :3]) + mat[:, None, None, None, :, 3]
+    mat = cast(view_proj, work)
+    clip = torch.einsum("bijcx,bkx->bijck", cast(points, work), mat[:, :, :3]) + mat[:, None, None, None, :, 3]
     cw = clip[..., 3]
     front = cw > 0
-    safe_w = torch.where(front, cw, torch.ones_like(cw))
+    safe_w = torch.where(front, cw, 1.0)
     ndc_x, ndc_y = clip[..., 0] / safe_w, clip[..., 1] / safe_w
     uv = torch.stack([(ndc_x + 1.0) * (0.5 * w) - 0.5, (1.0 - ndc_y) * (0.5 * h) - 0.5], -1)  # (B, Hg, Wg, C, 2)
     ok = valid & front & torch.isfinite(uv).all(-1)
-    uv = torch.where(ok[..., None], uv, torch.zeros_like(uv))
-    f = torch.where(ok & torch.isfinite(flux), flux.to(work), torch.zeros_like(flux, dtype=work))
+    uv = torch.where(ok[..., None], uv, 0.0)
+    f = torch.where(ok & torch.isfinite(flux), cast(flux, work), torch.zeros_like(flux, dtype=work))
     limit2 = float(max_stretch_px) ** 2
     hg, wg = uv.shape[1], uv.shape[2]
 
@@ -352,7 +352,7 @@ def splat_caustic_beams(
     twist = diag[..., :2] - nb_x[:, None, ..., :2] - nb_y[None, ..., :2] + uv
     twist = twist * (sign * sign.view(1, 2, 1, 1, 1, 1))[..., None]
     use_t = nat_x[:, None] & nat_y[None] & (diag[..., 2] > 0.5) & ((twist * twist).sum(-1) <= limit2)
-    twist = torch.where(use_t[..., None], twist, torch.zeros_like(twist))
+    twist = torch.where(use_t[..., None], twist, 0.0)
     # per quadrant q = 2 i_x + i_y (i = 0 on the + side): (4, B, Hg, Wg, C, 2)
     quad_x = jx[:, None].expand(2, 2, *uv.shape).reshape(4, *uv.shape)
     quad_y = jy[None].expand(2, 2, *uv.shape).reshape(4, *uv.shape)
@@ -401,15 +401,15 @@ def splat_caustic_beams(
         first = torch.floor(pos - 0.5 * a + 0.5).detach()
         wu, iu = _box_weights(pos[..., 0], a[..., 0], first[..., 0], t)  # (K, P, C, T)
         wv, iv = _box_weights(pos[..., 1], a[..., 1], first[..., 1], t)
-        wu = torch.where((iu >= 0) & (iu <= w - 1), wu, torch.zeros_like(wu))
-        wv = torch.where((iv >= 0) & (iv <= h - 1), wv, torch.zeros_like(wv))
+        wu = torch.where((iu >= 0) & (iu <= w - 1), wu, 0.0)
+        wv = torch.where((iv >= 0) & (iv <= h - 1), wv, 0.0)
         wgt = wv[..., :, None] * wu[..., None, :]  # (K, P, C, T, T)
         index = (iv.clamp(0, h - 1)[..., :, None] * w + iu.clamp(0, w - 1)[..., None, :]).to(torch.int64)
         index = index + base[..., None, None]
         if coverage is not None:
             wgt = wgt * cover[index]
         tot = wgt.sum((-2, -1), keepdim=True)
-        wgt = wgt / torch.where(tot > 0, tot, torch.ones_like(tot))
+        wgt = wgt / torch.where(tot > 0, tot, 1.0)
         wgt = wgt * (inside & (tot[..., 0, 0] > 0))[..., None, None]
         out = out.view(-1).scatter_add(0, index.reshape(-1), (wgt * sub_f[..., None, None]).reshape(-1))
     return out.reshape(b, c, h, w).to(out_dtype)

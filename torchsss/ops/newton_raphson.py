@@ -59,7 +59,7 @@ sight (grazing rays), and either method can stall at a kink or an occlusion edge
 The iterations run a fixed number of times with tensor ops only (``torch.where`` for every branch), so the
 function runs batched, differentiates (through ``grid_sample``'s bilinear weights, the finite difference and the
 selected branches) and exports to ONNX with the sizes dynamic. Eagerly and under ``torch.compile`` it is a Python
-loop; exported (``torch.export`` / ONNX) with two or more iterations it is one ``while_loop`` body, an ONNX
+loop; exported (``torch.export`` / ONNX) with four or more iterations it is one ``while_loop`` body, an ONNX
 ``Loop``, so the graph and the export time do not grow with ``iterations`` (the same step function, tested equal
 to the Python loop).
 """
@@ -73,13 +73,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchsss._checks import check_shape, check_tensor, compute_dtype, is_exporting, is_tracing, skip_value_checks
+from torchsss._checks import cast, check_shape, check_tensor, compute_dtype, is_exporting, is_tracing, skip_value_checks
 
 __all__ = ["lookup_positions", "newton_raphson_intersect"]
 
 _METHODS = ("shah", "newton")
 #: Share of the bilinear weight that has to fall on receiver texels for a lookup to hit.
 _MIN_COVERAGE = 0.5
+#: Exported, this many iterations or more run as one ``while_loop`` body (an ONNX ``Loop``); fewer are unrolled (the
+#: loop's own tracing costs about as much export time as three unrolled iterations).
+_LOOP_MIN_ITERATIONS = 4
 #: Forward-difference slopes smaller than this in magnitude are unusable (f' is dimensionless).
 _MIN_SLOPE = 1e-6
 
@@ -118,7 +121,7 @@ def _check_common(positions_texture: object, view_proj: object, rays: list[tuple
 def _prepare_texture(positions: Tensor) -> Tensor:
     """(B, 3, H, W) positions -> (B, 4, H, W): zeros where any channel is non-finite, plus a 0/1 coverage channel."""
     finite = torch.isfinite(positions).all(dim=1, keepdim=True)
-    clean = torch.where(finite, positions, torch.zeros_like(positions))
+    clean = torch.where(finite, positions, 0.0)
     return torch.cat([clean, finite.to(positions.dtype)], dim=1)
 
 
@@ -142,14 +145,14 @@ def _lookup(points: Tensor, tex: Tensor, grid_mat: tuple[Tensor, Tensor]) -> tup
     clip = torch.matmul(points, grid_mat[0]) + grid_mat[1]  # (B, N, 3): x, -y, w
     w = clip[..., 2]
     front = w > 0
-    ndc = clip[..., :2] / torch.where(front, w, torch.ones_like(w))[..., None]  # grid_sample's (x, y)
+    ndc = clip[..., :2] / torch.where(front, w, 1.0)[..., None]  # grid_sample's (x, y)
     inside = front & (ndc.abs() <= 1.0).all(-1)
     grid = torch.where(inside[..., None], ndc, 0.0)
     s = F.grid_sample(tex, grid.unsqueeze(2), mode="bilinear", padding_mode="border", align_corners=False)
     s = s[..., 0].transpose(1, 2)  # (B, N, 4)
     cover = s[..., 3]
     hit = inside & (cover > _MIN_COVERAGE)
-    p = s[..., :3] / torch.where(hit, cover, torch.ones_like(cover))[..., None]
+    p = s[..., :3] / torch.where(hit, cover, 1.0)[..., None]
     return p, hit
 
 
@@ -185,7 +188,7 @@ def _sight_centre(mat: Tensor) -> Tensor:
     c = (torch.matmul(outer, eps).reshape(b, 4, 4) * mat[:, None, 3, :]).sum(-1)
     cw = c[:, 3:4]
     perspective = cw != 0
-    k_persp = c / torch.where(perspective, cw, torch.ones_like(cw))
+    k_persp = c / torch.where(perspective, cw, 1.0)
     depth_gain = -(c[:, :3] * mat[:, 2, :3]).sum(-1, keepdim=True)  # growth of clip z along -C_xyz
     k_ortho = torch.where(depth_gain < 0, -c, c)
     return torch.where(perspective, k_persp, k_ortho)
@@ -200,7 +203,7 @@ def _norm(v: Tensor) -> Tensor:
 
 
 def _batched_matrix(view_proj: Tensor, b: int, dtype: torch.dtype) -> Tensor:
-    mat = view_proj.to(dtype)
+    mat = cast(view_proj, dtype)
     return mat.unsqueeze(0).expand(b, 4, 4) if mat.dim() == 2 else mat
 
 
@@ -233,13 +236,13 @@ def lookup_positions(points: Tensor, positions_texture: Tensor, view_proj: Tenso
     """
     _check_common(positions_texture, view_proj, [(points, "points")])
     out_dtype, work = compute_dtype(points, positions_texture, view_proj)
-    pts = points.to(work)  # a non-finite point fails the frustum test (comparisons with NaN are False)
+    pts = cast(points, work)  # a non-finite point fails the frustum test (comparisons with NaN are False)
     p, hit = _lookup(
-        pts, _prepare_texture(positions_texture.to(work)),
+        pts, _prepare_texture(cast(positions_texture, work)),
         _grid_matrix(_batched_matrix(view_proj, points.shape[0], work)),
     )
-    p = torch.where(hit[..., None], p, torch.zeros_like(p))
-    return p.to(out_dtype), hit
+    p = torch.where(hit[..., None], p, 0.0)
+    return cast(p, out_dtype), hit
 
 
 def _check_options(
@@ -345,16 +348,16 @@ def newton_raphson_intersect(
     out_dtype, work = compute_dtype(origins, directions, positions_texture, view_proj)
 
     # -- rays: sanitise so that nothing non-finite enters the loop -------------------------------------------------
-    o = origins.to(work)
-    r = directions.to(work)
+    o = cast(origins, work)
+    r = cast(directions, work)
     # scale-safe normalisation: divide by the largest absolute component first, so that |r|^2 lies in [1, 3]
     # (summing squares directly underflows to 0 near 1e-20 and overflows to inf near 1e20 in float32)
     r_max = r.abs().amax(-1)
     ray_ok = torch.isfinite(o).all(-1) & torch.isfinite(r).all(-1) & (r_max > 0)
-    r = r / torch.where(ray_ok, r_max, torch.ones_like(r_max))[..., None]
+    r = r / torch.where(ray_ok, r_max, 1.0)[..., None]
     r2 = (r * r).sum(-1)
-    o = torch.where(ray_ok[..., None], o, torch.zeros_like(o))
-    r = r / torch.sqrt(torch.where(ray_ok, r2, torch.ones_like(r2)))[..., None]
+    o = torch.where(ray_ok[..., None], o, 0.0)
+    r = r / torch.sqrt(torch.where(ray_ok, r2, 1.0))[..., None]
     r = torch.where(ray_ok[..., None], r, torch.full_like(r, 3.0**-0.5))
 
     if initial_distance is None:
@@ -362,10 +365,10 @@ def newton_raphson_intersect(
     elif isinstance(initial_distance, Tensor):
         check_tensor(initial_distance, "initial_distance")
         _shapes([(origins, "origins", "B,N,3"), (initial_distance, "initial_distance", "B,N")])
-        d0 = initial_distance.to(work)
+        d0 = cast(initial_distance, work)
         alive_d0 = torch.isfinite(d0)
         ray_ok = ray_ok & alive_d0
-        d = torch.where(alive_d0, d0, torch.zeros_like(d0))
+        d = torch.where(alive_d0, d0, 0.0)
     elif isinstance(initial_distance, numbers.Real) and not isinstance(initial_distance, bool):
         if not abs(float(initial_distance)) < float("inf"):
             raise ValueError(f"initial_distance: expected a finite number, got {initial_distance!r}")
@@ -375,7 +378,7 @@ def newton_raphson_intersect(
             f"initial_distance: expected None, a number or a (B, N) tensor, got {type(initial_distance).__name__}"
         )
 
-    tex = _prepare_texture(positions_texture.to(work))
+    tex = _prepare_texture(cast(positions_texture, work))
     mat = _batched_matrix(view_proj, origins.shape[0], work)
     centre = _sight_centre(mat)[:, None, :]  # (B, 1, 4)
     grid_mat = _grid_matrix(mat)
@@ -407,11 +410,11 @@ def newton_raphson_intersect(
 
         if newton:
             h = fd_step * scale
-            h = torch.where(h > 0, h, torch.ones_like(h))
+            h = torch.where(h > 0, h, 1.0)
             _pq, hit_q, f_q, _dq, _xq = evaluate(d + h)
             slope = (f_q - f) / h
             usable = hit_q & (slope.abs() > _MIN_SLOPE)
-            slope = torch.where(usable, slope, torch.ones_like(slope))
+            slope = torch.where(usable, slope, 1.0)
             d_new = torch.where(usable, d - f / slope, dist_po)
         else:
             d_new = dist_po
@@ -427,7 +430,7 @@ def newton_raphson_intersect(
 
     state = (d, d.clone(), torch.full_like(d, float("nan")), ray_ok, torch.zeros_like(ray_ok),
              torch.zeros_like(ray_ok))
-    if iterations >= 2 and is_exporting():
+    if iterations >= _LOOP_MIN_ITERATIONS and is_exporting():
         # one loop body in the graph (an ONNX Loop), not `iterations` unrolled copies: the export time and the
         # file stay the same for any iteration count
         from torch._higher_order_ops.while_loop import while_loop
@@ -448,12 +451,12 @@ def newton_raphson_intersect(
     oscillated = oscillated | (alive & (f.abs() > tol * (d.abs() + dist_po)) & (f.abs() >= f_prev.abs()))
     q = ((p - o) * r).sum(-1)  # the receiver's coordinate along the ray: > 0 when it lies ahead of the origin
     residual = _norm(p - x)
-    residual = torch.where(alive, residual, torch.zeros_like(residual))
+    residual = torch.where(alive, residual, 0.0)
     valid = alive & (d > 0) & (q > 0) & torch.isfinite(d)
     if max_residual is not None:
         valid = valid & (residual <= max_residual)
-    distance = torch.where(valid, d, torch.zeros_like(d)).to(out_dtype)
+    distance = torch.where(valid, d, 0.0).to(out_dtype)
     if not return_info:
         return distance, valid
-    info = {"oscillated": oscillated, "fallback": used_fallback, "residual": residual.to(out_dtype)}
+    info = {"oscillated": oscillated, "fallback": used_fallback, "residual": cast(residual, out_dtype)}
     return distance, valid, info

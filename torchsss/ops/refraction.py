@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsss._checks import as_float_tensor, check_positive, check_tensor, compute_dtype
+from torchsss._checks import as_float_tensor, cast, check_positive, check_tensor, compute_dtype
 
 __all__ = ["reflect", "refract"]
 
@@ -118,9 +118,9 @@ def refract(incident: Tensor, normal: Tensor, eta: Tensor | float) -> tuple[Tens
         ) from err
     check_positive(eta_t, "eta")
     out_dtype, work = compute_dtype(incident, normal, eta_t)
-    i, zero_i = _normalize(incident.to(work))
-    n, zero_n = _normalize(normal.to(work))
-    e = eta_t.to(work)
+    i, zero_i = _normalize(cast(incident, work))
+    n, zero_n = _normalize(cast(normal, work))
+    e = cast(eta_t, work)
     cos_i = -(i * n).sum(-1)
     flip = cos_i < 0
     n = torch.where(flip[..., None], -n, n)
@@ -129,11 +129,11 @@ def refract(incident: Tensor, normal: Tensor, eta: Tensor | float) -> tuple[Tens
     k = 1.0 - e * e * sin2_i
     degenerate = zero_i | zero_n
     tir = (k <= 0) & ~degenerate
-    sqrt_k = torch.sqrt(torch.where(k > 0, k, torch.ones_like(k)))
+    sqrt_k = torch.sqrt(torch.where(k > 0, k, 1.0))
     t = e[..., None] * i + (e * cos_i - sqrt_k)[..., None] * n
     t, _ = _normalize(t)
     t = torch.where((tir | degenerate)[..., None], torch.zeros_like(t), t)
-    return t.to(out_dtype), tir
+    return cast(t, out_dtype), tir
 
 
 def reflect(incident: Tensor, normal: Tensor) -> Tensor:
@@ -169,9 +169,9 @@ def reflect(incident: Tensor, normal: Tensor) -> Tensor:
             f"normal {tuple(normal.shape)}"
         ) from err
     out_dtype, work = compute_dtype(incident, normal)
-    i, zero_i = _normalize(incident.to(work))
-    n, zero_n = _normalize(normal.to(work))
+    i, zero_i = _normalize(cast(incident, work))
+    n, zero_n = _normalize(cast(normal, work))
     r = i - 2.0 * (n * i).sum(-1, keepdim=True) * n
     r, _ = _normalize(r)
     r = torch.where((zero_i | zero_n)[..., None], torch.zeros_like(r), r)
-    return r.to(out_dtype)
+    return cast(r, out_dtype)
