@@ -193,7 +193,7 @@ def splat_caustics(
     weight = torch.where(inside[..., None, None], weight, 0.0)
 
     index = (rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)).to(torch.int64)  # (B, N, c', K, K)
-    f = torch.where(torch.isfinite(flux), flux, 0.0).to(work)  # (B, N, C); non-finite -> 0
+    f = cast(torch.where(torch.isfinite(flux), flux, 0.0), work)  # (B, N, C); non-finite -> 0
     contrib = weight * f[..., None, None]  # (B, N, C, K, K)
     contrib = contrib.permute(0, 2, 1, 3, 4).reshape(b, c, -1)
     index = index.permute(0, 2, 1, 3, 4).reshape(b, index.shape[2], -1).expand(b, c, -1)
@@ -317,7 +317,7 @@ def splat_caustic_beams(
     uv = torch.stack([(ndc_x + 1.0) * (0.5 * w) - 0.5, (1.0 - ndc_y) * (0.5 * h) - 0.5], -1)  # (B, Hg, Wg, C, 2)
     ok = valid & front & torch.isfinite(uv).all(-1)
     uv = torch.where(ok[..., None], uv, 0.0)
-    f = torch.where(ok & torch.isfinite(flux), cast(flux, work), torch.zeros_like(flux, dtype=work))
+    f = torch.where(ok & torch.isfinite(flux), cast(flux, work), 0.0)
     limit2 = float(max_stretch_px) ** 2
     hg, wg = uv.shape[1], uv.shape[2]
 

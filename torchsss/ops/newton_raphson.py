@@ -395,14 +395,6 @@ def newton_raphson_intersect(
     def step(d: Tensor, d_prev: Tensor, f_prev: Tensor, alive: Tensor, oscillated: Tensor,
              used_fallback: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         """One update of the estimate; the state of the first one holds f_prev = NaN (no comparison fires)."""
-        # a loop body traced for export sees the sizes of the tensors it closes over afresh: restate them
-        b, n = d.shape
-        for x, sizes in ((o, (b, n, 3)), (r, (b, n, 3)), (centre, (b, 1, 4)), (grid_mat[0], (b, 3, 3)),
-                         (grid_mat[1], (b, 1, 3))):
-            for have, want in zip(x.shape, sizes):
-                torch._check(have == want)
-        torch._check(tex.shape[0] == b)
-        torch._check(tex.shape[1] == 4)
         _p, hit, f, dist_po, _x = evaluate(d)
         alive = alive & hit
         scale = d.abs() + dist_po
@@ -436,6 +428,15 @@ def newton_raphson_intersect(
         from torch._higher_order_ops.while_loop import while_loop
 
         def body(k: Tensor, *st: Tensor) -> tuple[Tensor, ...]:
+            d = st[0]
+            # a loop body traced for export sees the sizes of the tensors it closes over afresh: restate them
+            b, n = d.shape
+            for x, sizes in ((o, (b, n, 3)), (r, (b, n, 3)), (centre, (b, 1, 4)), (grid_mat[0], (b, 3, 3)),
+                             (grid_mat[1], (b, 1, 3))):
+                for have, want in zip(x.shape, sizes):
+                    torch._check(have == want)
+            torch._check(tex.shape[0] == b)
+            torch._check(tex.shape[1] == 4)
             # a loop body may not hand an input back as an output (d becomes d_prev): copy those
             return (k + 1, *(x.clone() if any(x is y for y in st) else x for x in step(*st)))
 
