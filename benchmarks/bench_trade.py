@@ -9,10 +9,14 @@ Usage::
 
     python benchmarks/bench_trade.py                 # the calibration scenes at 96x96 (about 20 min)
     python benchmarks/bench_trade.py --quick         # one scene at 48x48, the quick sweep
+    python benchmarks/bench_trade.py --methods lensch   # re-measure Lensch only: its rows replace the old ones
+        # in each scene's trade.json, the other methods' rows are kept
 """
 
 from __future__ import annotations
 
+import json
+import math
 import time
 from pathlib import Path
 
@@ -20,7 +24,7 @@ import torch
 
 from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark
 from torchsss.scene import Scene, default_scene_path, load_scene
-from torchsss.trade import trade, write_trade
+from torchsss.trade import pareto_front, trade, write_trade
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
@@ -53,10 +57,23 @@ def scene_key(scene: Scene) -> str:
     return "_".join(scene.name.translate({ord(c): None for c in ",:()"}).split()[:4])
 
 
+def merge_rows(path: Path, result: dict, methods: list[str]) -> dict:
+    """``result`` with the rows of the other methods of ``path``'s earlier trade (when there is one) kept."""
+    if not path.exists():
+        return result
+    old = json.loads(path.read_text())
+    rows = [r for r in old["rows"] if r["method"] not in methods] + result["rows"]
+    live = [r if "refused" not in r else {"frame_s": math.inf, "rel_rmse": math.inf} for r in rows]
+    return {**result, "rows": rows, "pareto": [i for i in pareto_front(live) if "refused" not in rows[i]],
+            "seconds": result["seconds"] + old.get("seconds", 0.0)}
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__.splitlines()[0], "trade_calibration", RESULTS_DIR)
     parser.add_argument("--resolution", type=int, default=96)
     parser.add_argument("--scenes", type=int, nargs="+", default=None, help="indices of the scenes to run (all)")
+    parser.add_argument("--methods", nargs="+", default=None,
+                        help="re-measure only these methods; their rows replace those of the scene's trade.json")
     args = parser.parse_args()
     setup_benchmark(parser, args)
     start = time.perf_counter()
@@ -64,10 +81,14 @@ def main() -> None:
     scenes = scenes[:1] if args.quick else [scenes[i] for i in args.scenes] if args.scenes else scenes
     records = []
     for scene in scenes:
-        result = trade(scene, quick=args.quick)
+        result = trade(scene, quick=args.quick, methods=args.methods)
+        if args.methods:
+            result = merge_rows(Path(args.out_dir) / "trade" / scene_key(scene) / "trade.json", result, args.methods)
         write_trade(result, Path(args.out_dir) / "trade" / scene_key(scene))
         ref = result["reference"]
         for row in result["rows"]:
+            if "refused" in row:
+                continue
             records.append({"scene": scene.name, "resolution": scene.camera.width, "method": row["method"],
                             "knobs": row["knobs"], "setup_s": row["setup_s"], "frame_s": row["frame_s"],
                             "rel_rmse": row["rel_rmse"], "max_error": row["max_error"], "peak_mib": row["peak_mib"],

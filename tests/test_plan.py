@@ -7,13 +7,17 @@ import math
 from pathlib import Path
 
 import pytest
+import torch
 
 from torchsss.cli import main
 from torchsss.geometry import Camera, PointLight, sphere
+from torchsss.ops import fused
 from torchsss.pipelines import build
 from torchsss.pipelines.splat import MIN_GRID, splat_grid
 from torchsss.plan import (
     MARGIN,
+    MARGINS,
+    MODEL,
     RULES,
     Plan,
     SceneFacts,
@@ -25,6 +29,13 @@ from torchsss.plan import (
     source_count,
 )
 from torchsss.scene import Scene, default_scene_path, load_scene
+
+
+@pytest.fixture(autouse=True)
+def _fresh_process(monkeypatch):
+    """Plan as a fresh ``python -m torchsss render`` does: compilation in its default mode, nothing compiled yet."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    monkeypatch.setattr(fused, "_WARM", set())
 
 
 def _scene(mesh="sphere", size=20.0, material="skin1", res=16, light=(0.0, 0.0, 1.0), decimate=None):
@@ -83,6 +94,56 @@ def test_rule_sources_decimated():
     p = plan(s, 0.05, methods=["reference"], mesh=mesh)
     assert p.knobs.get("source_faces") and p.knobs["source_faces"] < mesh.num_faces / 4
     assert "sources" in p.reasons
+
+
+def test_rule_sources_charges_the_decimated_surfaces_deviation():
+    # a bumpy sphere (a scan's detail): its sources on the mesh decimated to the spacing sit off the true surface,
+    # and the predicted error carries that offset over the shortest 1/sigma_tr; a smooth sphere's barely moves
+    import torch
+
+    from torchsss.geometry.mesh import decimate, surface_deviation
+
+    smooth = sphere(10.0, 6)
+    v = smooth.vertices
+    u = v / v.norm(dim=1, keepdim=True)
+    bumps = 1.0 + 0.02 * torch.sin(25 * u[:, 0]) * torch.sin(25 * u[:, 1]) * torch.sin(25 * u[:, 2] + 1.0)
+    bumpy = dataclasses.replace(smooth, vertices=v * bumps.unsqueeze(-1))
+    s = _scene(res=16)
+    preds = {}
+    for name, mesh in (("smooth", smooth), ("bumpy", bumpy)):
+        f = SceneFacts.from_scene(s, mesh)
+        i = max(range(len(f.source_faces)), key=lambda k: f.source_deviation_mm[k])
+        knobs = {"eps": [0.01, 0.02, 0.05, 0.1, 0.2, 0.3][i], "source_faces": f.source_faces[i]}
+        dev = surface_deviation(mesh, decimate(mesh, f.source_faces[i]))
+        assert f.source_deviation_mm[i] == pytest.approx(dev, rel=1e-3)  # the facts decimate in float64
+        with_dev = predict("reference", knobs, f, s.material)["error"]
+        without = predict("reference", knobs, dataclasses.replace(f, source_deviation_mm=()), s.material)["error"]
+        assert with_dev - without == pytest.approx(f.source_deviation_mm[i] / min(f.ell_mm))
+        preds[name] = dev
+    assert preds["bumpy"] > 2.5 * preds["smooth"] > 0  # measured 0.0186 against 0.0058 mm
+    # the coarse sphere strays by about its sagitta: e^2 / (8 R) for edges e on a radius R
+    coarse = decimate(smooth, 1280)
+    e2 = 4.0 * float(coarse.area) / coarse.num_faces / math.sqrt(3.0)  # equilateral faces of the same area
+    r = float(smooth.vertices.norm(dim=1).mean())
+    assert 0.2 * e2 / (8 * r) < surface_deviation(smooth, coarse) < 2.0 * e2 / (8 * r)
+    assert surface_deviation(smooth, smooth) == 0.0
+    with pytest.raises(ValueError, match="quantile"):
+        surface_deviation(smooth, coarse, quantile=0.0)
+    with pytest.raises(TypeError, match="coarse"):
+        surface_deviation(smooth, None)
+
+
+def test_margins_come_from_cross_validation():
+    # every method's margin is at least the in-sample one, and matches the held-out rule of fit_planner --cv
+    cv = json.loads((Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "planner_cv.json").read_text())
+    for method, margin in MARGINS.items():
+        assert margin >= MARGIN
+        held = cv[method]["margin"]
+        assert held is not None and margin == max(MARGIN, held), (method, margin, held)
+    s = _scene(res=16, light=(-0.3, 0.2, -1.0))
+    for method in ("icdf", "hybrid", "splat"):
+        p = plan(s, 0.1, methods=[method])
+        assert p.predicted_error * MARGINS[method] <= 0.1 < p.predicted_error * MARGINS[method] * 4
 
 
 def test_source_faces_knob_against_full_sources():
@@ -157,7 +218,8 @@ def test_samples_below_the_floor_plan_the_most_accurate_hybrid():
     assert 4096 < n <= 1 << 16
     pred = predict("hybrid", {"samples": n}, facts, s.material)["error"]
     floor = predict("hybrid", {"samples": 1 << 24}, facts, s.material)["error"]
-    assert pred * MARGIN > 0.005 and pred <= 1.15 * floor  # misses the tolerance, sits within ~12% of the floor
+    # misses the tolerance, sits within ~12% of the floor
+    assert pred * MARGINS["hybrid"] > 0.005 and pred <= 1.15 * floor
     knobs, _, note = plan_method(s, "hybrid", 0.005)
     assert knobs["samples"] == n and "most accurate" in note
 
@@ -182,7 +244,7 @@ def test_rule_splat_budget_tighter_for_lower_tolerance():
     grid = {id(p): splat_grid(mesh, s.material, p.knobs["eps"], oversample=p.knobs["oversample"])
             for p in (loose, tight)}
     assert grid[id(tight)] >= grid[id(loose)] >= MIN_GRID and loose.predicted_frame_s <= tight.predicted_frame_s
-    assert tight.predicted_error * MARGIN <= 0.04 < loose.predicted_error * MARGIN
+    assert tight.predicted_error * MARGINS["splat"] <= 0.04 < loose.predicted_error * MARGINS["splat"]
     assert "splat_budget" in tight.reasons
 
 
@@ -220,14 +282,41 @@ def test_frames_amortise_setup():
     assert many.predicted_frame_s <= one.predicted_frame_s
     assert many.predicted_total_s <= one.predicted_setup_s + 10_000 * one.predicted_frame_s
     for p in (one, many):  # the chosen candidate is the cheapest qualifying one
-        ok = [c for c in p.candidates if c["error"] * MARGIN <= 0.05]
+        ok = [c for c in p.candidates if c["error"] * MARGINS[c["method"]] <= 0.05]
         assert min(c["total_s"] for c in ok) == pytest.approx(p.predicted_total_s)
+
+
+def test_compiled_kernels_are_charged_once_per_process(monkeypatch):
+    # 256 x 256 of the default scene: the reference's all-pairs frame is over COLD_WORK pairs (a cold compile)
+    s = load_scene(default_scene_path())
+    f = SceneFacts.from_scene(s)
+    assert f.covered_px * f.sources[0] >= fused.COLD_WORK
+    cold = predict("reference", {}, f, s.material)
+    warm = predict("reference", {}, f, s.material, warm=frozenset({"plain"}))
+    assert cold["compile_s"] > 0 and warm["compile_s"] == 0
+    assert cold["setup_s"] - warm["setup_s"] == pytest.approx(cold["compile_s"])
+    assert warm["frame_s"] == pytest.approx(cold["frame_s"])
+    # the hybrid needs the split variant: a warm plain kernel does not spare its compile
+    assert predict("hybrid", {"samples": 65536}, f, s.material, warm=frozenset({"plain"}))["compile_s"] > 0
+    # compilation switched off: the eager rate, no compile
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    off = predict("reference", {}, f, s.material)
+    assert off["compile_s"] == 0 and off["frame_s"] > 3 * cold["frame_s"]
+    # plan() reads the process's state: the same plan, cheaper, once the plain kernel is compiled
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    p0 = plan(s, 0.001, methods=["reference"])
+    assert "compile" in p0.reasons and "charged" in p0.reasons["compile"]
+    fused._WARM.add(("dipole_pair_sum", "cpu", torch.float32, 1, 3, None, False, False))
+    assert fused.is_warm("dipole_pair_sum") and not fused.is_warm("dipole_pair_sum", split=True)
+    p1 = plan(s, 0.001, methods=["reference"])
+    assert "already compiled" in p1.reasons["compile"]
+    assert p0.predicted_setup_s - p1.predicted_setup_s == pytest.approx(MODEL["fused_compile_s"])
 
 
 def test_measured_trade_overrides_predictions():
     s = load_scene(default_scene_path())
     p = plan(s, 0.05)
-    assert p.method != "reference"
+    assert any(c["method"] == p.method and c["knobs"] == p.knobs for c in p.candidates)  # a candidate, not the truth
     knobs = dict(p.knobs)
     if p.decimate:
         knobs["decimate"] = p.decimate

@@ -72,7 +72,7 @@ def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[d
     * splat: ``eps`` 0.1, 0.03, 0.01, 0.003 (the splat budget, Shah eq. 6.16-6.18) and ``oversample`` 1 and 2.
     * icdf: ``samples`` 1024 ... 65536 (error ~ 1/sqrt(N)).
     * hybrid: ``samples`` 1024 ... 65536.
-    * lensch: ``atlas_resolution`` 128, 256, 512.
+    * lensch: ``atlas_resolution`` 128, 256, 512, 1024.
 
     Examples:
         >>> sweep_configs("icdf", quick=True)
@@ -89,7 +89,7 @@ def sweep_configs(method: str, *, quick: bool = False, faces: int = 0) -> list[d
                  "splat": [{"eps": e, "oversample": s} for e in (0.1, 0.03, 0.01, 0.003) for s in (1.0, 2.0)],
                  "icdf": [{"samples": n} for n in (1024, 4096, 16384, 65536)],
                  "hybrid": [{"samples": n} for n in (1024, 4096, 16384, 65536)],
-                 "lensch": [{"atlas_resolution": r} for r in (128, 256, 512)]}
+                 "lensch": [{"atlas_resolution": r} for r in (128, 256, 512, 1024)]}
     if method not in grids:
         raise ValueError(f"method: expected one of {sorted(grids)}, got {method!r}")
     configs = [dict(c) for c in grids[method]]

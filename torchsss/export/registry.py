@@ -210,6 +210,10 @@ def _irradiance_atlas_case() -> ExportCase:
         dynamic_shapes=({0: Dim("B")}, {0: Dim("B")}, {0: Dim("B")}),
         description="IrradianceAtlas (skin1 Fresnel, 64x64 sphere atlas): light (B, 4) mm, intensity (B, 3), "
                     "visibility (B, 1, 64, 64) -> irradiance atlas (B, 3, 64, 64)",
+        # grazing texels: the Fresnel transmittance 1 - F_r cancels (values ~1e-5 of the median); on a machine
+        # whose onnxruntime takes other vector paths, 3 of 36,864 texels differed by 1.7e-5 relative (the rest
+        # <= 1.3e-6; 1e-5 elsewhere)
+        rtol=5e-5,
     )
 
 

@@ -15,6 +15,7 @@ from torchsss.geometry.lensch import (
     LocalKernelGeometry,
     Throughput,
     VertexWeights,
+    WindowOverlap,
     blending_weights,
     build_throughput,
     local_kernel_geometry,
@@ -22,6 +23,7 @@ from torchsss.geometry.lensch import (
     plan_lensch,
     throughput_values,
     vertex_weights,
+    window_overlap,
 )
 from torchsss.geometry.lights import (
     DirectionalLight,
@@ -33,7 +35,14 @@ from torchsss.geometry.lights import (
     surface_irradiance,
 )
 from torchsss.geometry.loading import builtin_mesh_names, builtin_mesh_path, load_mesh
-from torchsss.geometry.mesh import Mesh, MeshWarning, decimate, mesh_from_arrays, normalize_to_size
+from torchsss.geometry.mesh import (
+    Mesh,
+    MeshWarning,
+    decimate,
+    mesh_from_arrays,
+    normalize_to_size,
+    surface_deviation,
+)
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.peel import EnvironmentSplats, axis_camera, environment_splats
 from torchsss.geometry.procedural import plane, slab, sphere, torus
@@ -63,6 +72,7 @@ __all__ = [
     "SurfaceSamples",
     "Throughput",
     "VertexWeights",
+    "WindowOverlap",
     "attach_light_view",
     "axis_camera",
     "blending_weights",
@@ -106,10 +116,12 @@ __all__ = [
     "slab",
     "sphere",
     "subdivision_barycentrics",
+    "surface_deviation",
     "surface_irradiance",
     "surface_samples",
     "throughput_values",
     "torus",
     "transform_points",
     "vertex_weights",
+    "window_overlap",
 ]

@@ -43,15 +43,18 @@ __all__ = [
     "LocalKernelGeometry",
     "Throughput",
     "VertexWeights",
+    "WindowOverlap",
     "blending_weights",
     "build_throughput",
     "check_entries",
     "estimate_throughput_entries",
+    "kernel_reach",
     "local_kernel_geometry",
     "plan_kernel_size",
     "plan_lensch",
     "throughput_values",
     "vertex_weights",
+    "window_overlap",
 ]
 
 _MAX_KERNEL = 63
@@ -282,6 +285,74 @@ def vertex_weights(mesh: Mesh, atlas: Atlas) -> VertexWeights:
     dual = torch.where(chart & (big_a > 0), 3.0 / big_a.clamp_min(torch.finfo(big_a.dtype).tiny) * (4.0 * bary - 1.0)
                        * area, torch.zeros_like(bary))
     return VertexWeights(ids.unsqueeze(0), dual.unsqueeze(0), bary.unsqueeze(0))
+
+
+class WindowOverlap(NamedTuple):
+    r"""Per-texel geometry of the global term's share inside the local window (see :func:`window_overlap`).
+
+    Attributes:
+        weight: :math:`(3, 3, H, W)` :math:`\tilde\psi_i(o)\,\beta_j(o)` for the receiver's face vertices
+            ``i`` (source) and ``j`` (receiver); 0 on texels outside the atlas's valid mask.
+        distance: :math:`(3, 3, H, W)` mm :math:`|v_i - v_j|` (0 on the diagonal).
+        vertex_area: :math:`(3, H, W)` mm^2 :math:`A_i / 3` of the face vertices (the throughput's source areas).
+    """
+
+    weight: Tensor
+    distance: Tensor
+    vertex_area: Tensor
+
+
+def window_overlap(mesh: Mesh, atlas: Atlas, weights: VertexWeights) -> WindowOverlap:
+    r"""Geometry of the near field that the unblended Lensch sum would count twice.
+
+    Without blending (Lensch §5.4) the radiosity is :math:`B^l + B^g`: the ``k x k`` local kernel sums
+    :math:`A(s) R_d(|x_o - x_s|) E(s)` over its window while the vertex throughput sums every source, the window's
+    included. Through the dual projection and the barycentric reconstruction, a source texel ``s`` reaches receiver
+    ``o`` in the global term with the weight :math:`G(o, s) = \sum_j \beta_j(o) \sum_i A(s) \tilde\psi_i(s)
+    F_{ij}`. Across a window much smaller than a face (the unblended case: the kernel reaches less than half an
+    edge) the dual basis is linear and centred on ``o``, so :math:`G(o, s) \approx A(s)\,\gamma(o)` with
+    :math:`\gamma(o) = \sum_{i, j} \tilde\psi_i(o) \beta_j(o) F_{ij}` over the receiver's face, the diagonal
+    :math:`F_{ii}` being the disk integral of the vertex area (as in the throughput). The local kernel then
+    carries :math:`A(s)\,(R_d(|x_o - x_s|) - \gamma(o))`: the window exact, the rest from the throughput.
+    Measured at 96 x 96 against the reference (mean radiance per channel): a side-lit 30 mm marble torus at atlas
+    512 went from +8/+12/+15% to -1/+0/+1% (relative RMSE 14.6% -> 6.0%).
+
+    Args:
+        mesh: the mesh the atlas was built from.
+        atlas: its texture atlas.
+        weights: :func:`vertex_weights` of the same mesh and atlas.
+
+    Returns:
+        :class:`WindowOverlap` in the atlas's dtype and device; :math:`\gamma` itself is evaluated by
+        :class:`torchsss.modules.lensch.LocalResponse` from the material (so material edits stay live).
+
+    Examples:
+        >>> from torchsss.geometry import build_atlas, sphere
+        >>> mesh = sphere(5.0, 2)
+        >>> atlas = build_atlas(mesh, 32, kernel_size=3)
+        >>> ov = window_overlap(mesh, atlas, vertex_weights(mesh, atlas))
+        >>> tuple(ov.weight.shape), tuple(ov.vertex_area.shape)
+        ((3, 3, 32, 32), (3, 32, 32))
+    """
+    mesh = check_mesh(mesh)
+    atlas = _check_atlas(atlas)
+    if not isinstance(weights, VertexWeights):
+        raise TypeError(f"weights: expected a torchsss.geometry.lensch.VertexWeights, got {type(weights).__name__}")
+    ids = weights.vertex_ids[0]  # (3, H, W)
+    bary = weights.bary[0]
+    if ids.shape[-2:] != atlas.valid_mask.shape[-2:]:
+        raise ValueError(f"weights: expected buffers of the atlas's size {tuple(atlas.valid_mask.shape[-2:])}, got "
+                         f"{tuple(ids.shape[-2:])}")
+    dtype, device = atlas.area.dtype, atlas.area.device
+    valid = atlas.valid_mask[0, 0]
+    vertex_area = mesh.vertex_areas.detach().to(device=device, dtype=dtype)[ids]  # A_i / 3
+    big_a = 3.0 * vertex_area
+    psi = torch.where(valid & (big_a > 0), 3.0 / big_a.clamp_min(torch.finfo(dtype).tiny) * (4.0 * bary - 1.0),
+                      torch.zeros_like(bary))
+    weight = psi.unsqueeze(1) * bary.unsqueeze(0)  # (i, j, H, W)
+    v = mesh.vertices.detach().to(device=device, dtype=torch.float64)[ids]  # (3, H, W, 3)
+    distance = (v.unsqueeze(1) - v.unsqueeze(0)).norm(dim=-1).to(dtype)
+    return WindowOverlap(weight, distance * valid, vertex_area * valid)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -827,9 +898,19 @@ def plan_lensch(mesh: Mesh, resolution: int, *, utilization: float = ATLAS_UTILI
         (1, True)
     """
     k = plan_kernel_size(mesh, resolution, utilization=utilization)
-    texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
-    edge = _median_edge(mesh)
-    reach = (k // 2) * texel / edge if edge > 0 else math.inf
-    if reach >= BLEND_MIN_REACH:
+    if kernel_reach(mesh, resolution, k, utilization=utilization) >= BLEND_MIN_REACH:
         return k, True
     return 7, False
+
+
+def kernel_reach(mesh: Mesh, resolution: int, kernel_size: int, *, utilization: float = ATLAS_UTILIZATION) -> float:
+    """A ``kernel_size`` kernel's half-width over the median edge at atlas ``resolution`` (inf on a degenerate mesh).
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> kernel_reach(sphere(10.0, 3), 1024, 7) < kernel_reach(sphere(10.0, 3), 512, 7)
+        True
+    """
+    texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
+    edge = _median_edge(mesh)
+    return (kernel_size // 2) * texel / edge if edge > 0 else math.inf

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
-from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights
+from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights, WindowOverlap
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d
 from torchsss.physics.fresnel import check_fresnel, transmittance
@@ -170,13 +170,25 @@ class LocalResponse(nn.Module):
             the profile is far narrower than a texel); ``"point"`` keeps Lensch's point sample.
         copy: copy ``geometry`` and ``correction`` into the buffers (default); ``False`` takes them as they are
             (no second copy of the :math:`(H, W, k, k)` tensors; the caller must not change them afterwards).
+        overlap: optional :class:`~torchsss.geometry.lensch.WindowOverlap` (unblended Lensch): every tap becomes
+            :math:`A(s)\\,(R_d(|x_o - x_s|) - \\gamma(o))`, where :math:`\\gamma(o)` (evaluated from the material,
+            at the receiver's distance scale) is the global term's own weight of the window, so that
+            :math:`B^l + B^g` does not count the near field twice (:func:`~torchsss.geometry.lensch.window_overlap`).
     """
 
     def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
                  distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
-                 mask: Tensor | None = None, self_term: str = "disk", copy: bool = True):
+                 mask: Tensor | None = None, self_term: str = "disk", copy: bool = True,
+                 overlap: WindowOverlap | None = None):
         super().__init__()
         dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k")
+        if overlap is not None:
+            if not isinstance(overlap, WindowOverlap):
+                raise TypeError(f"overlap: expected a torchsss.geometry.lensch.WindowOverlap, got "
+                                f"{type(overlap).__name__}")
+            check_shape(overlap.weight, "overlap.weight", "3,3,H,W", H=dims["H"], W=dims["W"])
+            check_shape(overlap.distance, "overlap.distance", "3,3,H,W", H=dims["H"], W=dims["W"])
+            check_shape(overlap.vertex_area, "overlap.vertex_area", "3,H,W", H=dims["H"], W=dims["W"])
         if not isinstance(copy, bool):
             raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
         self.kernel_size = int(geometry.kernel_size)
@@ -206,6 +218,32 @@ class LocalResponse(nn.Module):
         if irradiance_scale is not None:
             check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
+        # the window overlap, receiver-major: weights and distances (H, W, 9), vertex areas (H, W, 3)
+        for name, t in (("overlap_weight", None if overlap is None else overlap.weight.flatten(0, 1)),
+                        ("overlap_distance", None if overlap is None else overlap.distance.flatten(0, 1)),
+                        ("overlap_area", None if overlap is None else overlap.vertex_area)):
+            self.register_buffer(name, None if t is None else t.detach().permute(1, 2, 0).to(dist.dtype).contiguous())
+
+    def overlap(self, lo: int = 0, hi: int | None = None) -> Tensor | None:
+        r"""The global term's weight :math:`\gamma(o)` of the window for the receiver rows ``lo:hi``.
+
+        :math:`(hi - lo, W, C)` mm^-2 (None without ``overlap``): :math:`\sum_{i \ne j} w_{ij} A_i/3\,
+        R_d(d_{ij} M_d) + \sum_i w_{ii} \int_{disk(A_i/3)} R_d(r M_d)`, :math:`M_d` the receiver's distance scale.
+        """
+        if self.overlap_weight is None:
+            return None
+        hi = self.distance.shape[0] if hi is None else hi
+        w, d, a = self.overlap_weight[lo:hi], self.overlap_distance[lo:hi], self.overlap_area[lo:hi]
+        md = None if self.self_scale is None else self.self_scale[lo:hi]
+        off = torch.tensor([k % 4 != 0 for k in range(9)], device=w.device)  # the 6 off-diagonal pairs
+        src_area = a.repeat_interleave(3, dim=-1)  # pair (i, j) = 3 i + j: source i's area
+        dist = d if md is None else d * md.unsqueeze(-1)
+        f = self.material(dist.unsqueeze(-1))  # (h, W, 9, C)
+        gamma = ((w * src_area * off).unsqueeze(-1) * f).sum(2)
+        disk = _disk_integral(self.material, a, None if md is None else md.unsqueeze(-1).expand_as(a))
+        if disk is None:  # a profile without a closed-form cumulative: the point sample, as the throughput does
+            disk = a.unsqueeze(-1) * self.material(torch.zeros_like(a).unsqueeze(-1))
+        return gamma + (w[..., ::4].unsqueeze(-1) * disk).sum(2)
 
     def kernels(self) -> Tensor:
         """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``).
@@ -251,6 +289,9 @@ class LocalResponse(nn.Module):
             centre = torch.zeros_like(area)
             centre[:, :, c, c] = 1.0
             k = k + centre.unsqueeze(-1) * (disk - k[:, :, c, c]).unsqueeze(2).unsqueeze(2)
+        gamma = self.overlap(lo, hi)
+        if gamma is not None:
+            k = k - area.unsqueeze(-1) * gamma.unsqueeze(2).unsqueeze(2)
         k = k.permute(4, 0, 1, 2, 3)
         if self.correction is not None:
             k = k + self.correction[:, lo:hi]

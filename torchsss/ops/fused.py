@@ -54,6 +54,7 @@ __all__ = [
     "dipole_pair_sum_eager",
     "dipole_taps",
     "dipole_taps_eager",
+    "is_warm",
     "use_compiled",
 ]
 
@@ -109,6 +110,21 @@ def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, 
         return True
     _EAGER_WORK[key] = spent
     return False
+
+
+def is_warm(name: str, *, device: str = "cpu", dtype: torch.dtype = torch.float32, split: bool | None = None) -> bool:
+    """Whether this process has already compiled a variant of kernel ``name`` on ``device`` in ``dtype``.
+
+    The planner (:func:`torchsss.plan.plan`) charges no compile to a method whose kernel is warm. ``split`` (for
+    ``dipole_pair_sum``): only variants with (True) or without (False) the local/global split count; None: any.
+    Every variant key starts with (device type, dtype); those of ``dipole_pair_sum`` end with the split flag.
+
+    Examples:
+        >>> is_warm("no_such_kernel")
+        False
+    """
+    return any(k[0] == name and k[1] == device and k[2] == dtype and (split is None or k[-1] is split)
+               for k in _WARM)
 
 
 def _eligible(name: str, tensors: tuple[Tensor, ...]) -> bool:

@@ -22,14 +22,17 @@ from torchsss.geometry.atlas_frame import irradiance_atlas
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lensch import (
+    BLEND_MIN_REACH,
     MAX_THROUGHPUT_ENTRIES,
     blending_weights,
     build_throughput,
     check_entries,
+    kernel_reach,
     local_kernel_geometry,
     plan_kernel_size,
     plan_lensch,
     vertex_weights,
+    window_overlap,
 )
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
@@ -56,7 +59,8 @@ class LenschScene:
 
 def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int = 512, kernel_size: int | None = None,
                  threshold: float = 1e-5, relative: bool = True, blend: bool | None = None,
-                 max_entries: int | None = MAX_THROUGHPUT_ENTRIES, progress: bool = False) -> LenschScene:
+                 max_entries: int | None = MAX_THROUGHPUT_ENTRIES, progress: bool = False,
+                 overlap: bool = True) -> LenschScene:
     """Precompute everything the per-frame Lensch module needs (see the module docstring).
 
     ``material`` is a :class:`~torchsss.physics.Material` record, a preset name or a profile module (shared by the
@@ -65,8 +69,14 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     that reaches ~0.7 median edges, 7 for Lensch's meshes and up to 11 for coarse ones; no blending, k = 7, when no
     kernel up to 11 reaches half an edge). Without blending the kernel only has to hold the near field and 7 is
     used. ``max_entries`` caps the throughput's size
-    (:func:`~torchsss.geometry.lensch.check_entries`; None: no cap).
+    (:func:`~torchsss.geometry.lensch.check_entries`; None: no cap). ``overlap`` (unblended only): the local
+    kernels leave out the global term's own share of their window
+    (:func:`~torchsss.geometry.lensch.window_overlap`), so the near field is not counted twice, where the kernel
+    reaches less than :data:`~torchsss.geometry.lensch.BLEND_MIN_REACH` median edges (its first-order form needs
+    windows inside a face); False keeps the plain sum :math:`B^l + B^g` (measurable, as ``blend``).
     """
+    if not isinstance(overlap, bool):
+        raise TypeError(f"overlap: expected a bool, got {type(overlap).__name__}")
     stats: dict = {}
     mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
                           device=mesh.vertices.device)
@@ -97,7 +107,13 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
                               progress=progress)
         direct, correction = bw.weights, bw.kernel_correction
         stats["t_blending_s"] = time.perf_counter() - t2
-    local = LocalResponse(geom, mat, correction=correction, copy=False)  # built here, owned by the module
+    # the overlap's first-order form holds for windows inside a face: the unblended regime of plan_lensch (a kernel
+    # forced unblended on a coarse atlas is left as the plain sum; on the 16 mm sphere at atlas 128, reach 0.57, the
+    # approximation subtracted more than the window holds)
+    ov = window_overlap(mesh, atlas, weights) if overlap and not blend and \
+        kernel_reach(mesh, resolution, kernel_size) < BLEND_MIN_REACH else None
+    stats["overlap"] = ov is not None
+    local = LocalResponse(geom, mat, correction=correction, copy=False, overlap=ov)  # owned by the module
     glob = GlobalResponse(weights, tp, mat, atlas.valid_mask)
     module = LenschTranslucency(local, glob, direct=direct)
     stats["t_precompute_s"] = time.perf_counter() - t0
@@ -117,6 +133,8 @@ class LenschRenderer(Renderer):
         specular: add the shadow-mapped GGX boundary reflection.
         roughness: GGX alpha of ``specular``.
         max_entries: cap of the vertex throughput's entries (ValueError beyond it).
+        overlap: unblended only: subtract the global term's share of the local window (no near field counted
+            twice; :func:`~torchsss.geometry.lensch.window_overlap`).
         source_faces: build the atlas, kernels and throughput on the mesh decimated to about this many faces
             while the camera sees the full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
     """
@@ -124,12 +142,13 @@ class LenschRenderer(Renderer):
     method = "lensch"
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
                                     blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
-                                    max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None)
+                                    max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None, overlap=True)
 
     @classmethod
     def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
         """A renderer around an existing :func:`build_lensch` result (no new setup)."""
-        fixed = {"kernel_size": int(built.module.local.kernel_size), "blend": built.module.direct is not None}
+        fixed = {"kernel_size": int(built.module.local.kernel_size), "blend": built.module.direct is not None,
+                 "overlap": built.module.local.overlap_weight is not None or built.module.direct is not None}
         return super().from_built(built, **{**knobs, **fixed})
 
     def _build(self) -> None:
@@ -137,7 +156,8 @@ class LenschRenderer(Renderer):
         self.source_mesh = source_mesh(self.mesh, k["source_faces"])
         self.built = build_lensch(self.source_mesh, self.material, resolution=k["atlas_resolution"],
                                   kernel_size=k["kernel_size"], threshold=k["threshold"], relative=k["relative"],
-                                  blend=k["blend"], max_entries=k["max_entries"], progress=self.progress)
+                                  blend=k["blend"], max_entries=k["max_entries"], progress=self.progress,
+                                  overlap=k["overlap"])
         k["kernel_size"] = int(self.built.module.local.kernel_size)
         k["blend"] = self.built.module.direct is not None
         self.module = self.built.module
