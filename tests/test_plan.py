@@ -313,6 +313,20 @@ def test_compiled_kernels_are_charged_once_per_process(monkeypatch):
     assert p0.predicted_setup_s - p1.predicted_setup_s == pytest.approx(MODEL["fused_compile_s"])
 
 
+def test_lensch_is_not_costed_below_its_floor():
+    # below Lensch's error floor (x its margin) no Lensch candidate can qualify: the plan skips them, and their
+    # throughput estimate (most of the facts' time); asked for by name, Lensch is planned as before
+    s = _scene(res=16)
+    p = plan(s, 0.02)
+    assert "lensch" in p.reasons and not any(c["method"] == "lensch" for c in p.candidates)
+    assert p.facts["throughput_entries"] == -1
+    q = plan(s, 0.02, methods=["lensch"])
+    assert q.method in ("lensch", "reference") and q.facts["throughput_entries"] > 0
+    assert any(c["method"] == "lensch" for c in q.candidates)
+    loose = plan(s, 0.5)
+    assert any(c["method"] == "lensch" for c in loose.candidates) and "lensch" not in loose.reasons
+
+
 def test_measured_trade_overrides_predictions():
     s = load_scene(default_scene_path())
     p = plan(s, 0.05)
