@@ -18,6 +18,7 @@ from torchsss.geometry.lensch import (
 )
 from torchsss.modules import DipoleMaterial
 from torchsss.modules.lensch import GlobalResponse, LocalResponse
+from torchsss.physics import total_diffuse_reflectance
 from torchsss.pipelines import build
 from torchsss.pipelines.lensch import build_lensch
 from torchsss.scene import Material
@@ -122,3 +123,33 @@ def test_overlap_rejects_bad_input():
         window_overlap(mesh, atlas, (w.vertex_ids, w.dual, w.bary))
     with pytest.raises(TypeError, match="overlap"):
         build_lensch(mesh, "skin1", resolution=24, overlap="yes")
+
+
+def test_overlap_at_the_extremes_of_r_max():
+    # r_max far below a texel and far beyond the object: gamma stays finite and the radiosity positive. Under a
+    # uniform irradiance with r_max << texel the truth is R_total: the plain sum counts it about twice (the centre
+    # tap's disk integral and the vertices' own disks: measured +100%), the corrected one less so (+66%: the
+    # throughput spreads each vertex's self-response over its hat, beyond the window; blending is the remedy)
+    mesh = sphere(5.0, 2, dtype=torch.float64)
+    atlas = build_atlas(mesh, 256, kernel_size=7)
+    assert kernel_reach(mesh, 256, 7) < 0.5
+    chart = atlas.chart_mask.expand(1, 3, 256, 256)
+    w = vertex_weights(mesh, atlas)
+    e = torch.ones(1, 3, 256, 256, dtype=torch.float64) * atlas.valid_mask
+    for sa_v, ss_v in ((50.0, 500.0), (1e-4, 0.05)):
+        sa, ss = torch.full((3,), sa_v, dtype=torch.float64), torch.full((3,), ss_v, dtype=torch.float64)
+        mat = DipoleMaterial(sa, ss, torch.tensor(1.3, dtype=torch.float64))
+        local = LocalResponse(local_kernel_geometry(atlas, 7), mat, overlap=window_overlap(mesh, atlas, w))
+        plain = LocalResponse(local_kernel_geometry(atlas, 7), mat)
+        glob = GlobalResponse(w, build_throughput(mesh, mat), mat, atlas.valid_mask)
+        with torch.no_grad():
+            gamma, bg = local.overlap(), glob(e)
+            fixed, summed = local(e) + bg, plain(e) + bg
+        assert bool(torch.isfinite(gamma).all()) and bool(torch.isfinite(fixed).all())
+        assert float(fixed[chart].min()) > 0, (sa_v, float(fixed[chart].min()))
+        assert float(fixed[chart].mean()) < float(summed[chart].mean())  # the correction only removes
+        if sa_v > 1:
+            r_total = float(total_diffuse_reflectance(sa, ss, 1.3)[0])
+            err_fixed = abs(float(fixed[chart].mean()) / r_total - 1.0)
+            err_summed = abs(float(summed[chart].mean()) / r_total - 1.0)
+            assert err_fixed < err_summed, (err_fixed, err_summed)
