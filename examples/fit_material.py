@@ -93,7 +93,7 @@ from torchsss.pipelines import build
 from torchsss.scene import Scene, default_scene_path, load_scene
 
 __all__ = ["LogDipoleMaterial", "fit", "load_fit_scene", "orbit_cameras", "relative_errors", "render_targets",
-           "view_loss"]
+           "target_spacing", "view_loss"]
 
 DIFFERENTIABLE = ("splat", "lensch", "icdf", "hybrid", "reference")
 
@@ -186,8 +186,27 @@ def orbit_cameras(camera: Camera, views: int) -> list[Camera]:
     return out
 
 
+def target_spacing(mesh, material: Material, eps: float = 1e-3) -> float:
+    """The sample spacing (mm) of independent targets: the reference's at ``eps``, and at most half the median edge.
+
+    The reference places :math:`\\lceil \\ell / s\\rceil^2` samples on a face whose longest edge is :math:`\\ell`, so
+    on a finely tessellated mesh every spacing above the edge lengths gives the same samples (one per face). Half
+    the median longest edge puts at least 4 samples on most faces: the targets' quadrature differs from that of the
+    reference at its default spacing, which the fit's correction renders (fitting with the targets' own
+    discretisation would recover them exactly, whatever the method: an inverse crime).
+    """
+    from torchsss.pipelines.reference import default_spacing
+
+    tri = mesh.triangles()
+    longest = torch.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 1], tri[:, 0] - tri[:, 2]], 1).norm(dim=-1)
+    return min(default_spacing(material, mesh, eps), 0.5 * float(longest.amax(1).median()))
+
+
 def render_targets(scene: Scene, mesh, material: Material, cameras: list[Camera], **knobs) -> list[Tensor]:
-    """Target images :math:`(1, 3, H, W)` rendered with the all-pairs reference (one build, one frame per view)."""
+    """Images :math:`(1, 3, H, W)` rendered with the all-pairs reference (one build, one frame per view).
+
+    ``knobs`` go to the reference (e.g. ``spacing_mm=target_spacing(mesh, material)`` for independent targets).
+    """
     ref = build("reference", mesh, material, **knobs)
     with torch.no_grad():
         return [ref.render(list(scene.lights), cam).radiance for cam in cameras]
@@ -343,7 +362,7 @@ def _loss_png(path: Path, loss: list[float], title: str) -> None:
         return
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     ax.semilogy(range(len(loss)), loss)
-    ax.set_xlabel("Adam step")
+    ax.set_xlabel("iteration (Adam step or LM iteration)")
     ax.set_ylabel("relative squared error (mean over views)")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
@@ -375,11 +394,17 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--oversample", type=float, default=1.0, help="splat light-view oversampling (no --tolerance)")
     p.add_argument("--splat-method", default="window", choices=("auto", "window", "tile"),
                    help="splat_radiosity's form (window: 2-3x faster than tile under autograd here)")
-    p.add_argument("--steps", type=int, default=60)
-    p.add_argument("--lr", type=float, default=0.1, help="Adam learning rate (log space)")
+    p.add_argument("--optimizer", default="lm", choices=("lm", "adam"),
+                   help="lm: Levenberg-Marquardt with the reference correction (fit_lm.py; default); adam: Adam")
+    p.add_argument("--no-correct", action="store_true",
+                   help="lm without the reference's defect correction: fit the fast method's images as they are")
+    p.add_argument("--outer", type=int, default=8, help="lm: outer iterations (rebuild + correction) at most")
+    p.add_argument("--inner", type=int, default=8, help="lm: LM iterations per outer iteration at most")
+    p.add_argument("--steps", type=int, default=60, help="adam: steps")
+    p.add_argument("--lr", type=float, default=0.1, help="adam: learning rate (log space)")
     p.add_argument("--fit-eta", action="store_true", help="optimise eta too")
     p.add_argument("--rebuild-every", type=int, default=10,
-                   help="rebuild the renderer (its knobs planned from the material) every N steps")
+                   help="adam: rebuild the renderer (its knobs planned from the material) every N steps")
     p.add_argument("--float64", action="store_true", help="render in double precision")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--json", type=Path, default=None, help="write the result here")
@@ -389,7 +414,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="also measure what the images can tell apart (see sensitivity(); 6 x views reference renders)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
-    for name in ("views", "size", "steps"):
+    for name in ("views", "size", "steps", "outer", "inner"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
     return args
@@ -437,8 +462,10 @@ def main(argv=None) -> dict:
         mesh = scene.load_mesh(dtype)
         cameras = orbit_cameras(scene.camera, args.views)
         target_material = args.target_material
-        print(f"rendering {len(cameras)} target views ({args.size}x{args.size}) with the reference ...")
-        targets = render_targets(scene, mesh, target_material, cameras, dtype=dtype)
+        print(f"rendering {len(cameras)} target views ({args.size}x{args.size}) with the reference (spacing "
+              f"{target_spacing(mesh, target_material):.3g} mm) ...")
+        targets = render_targets(scene, mesh, target_material, cameras, dtype=dtype,
+                                 spacing_mm=target_spacing(mesh, target_material))
     t_targets = time.perf_counter() - t_start
     eta0 = scene.material.eta if scene.material is not None else 1.3
     init = args.init_material or Material.from_json({"sigma_a": [0.05] * 3, "sigma_s_prime": [1.0] * 3, "eta": eta0})
@@ -456,27 +483,49 @@ def main(argv=None) -> dict:
     with torch.no_grad():
         initial_images = [renderer.render(lights, c).radiance for c in cameras]
     initial = _params(material)
+    correct = args.optimizer == "lm" and not args.no_correct
+    how = (f"{args.steps} Adam steps" if args.optimizer == "adam" else
+           f"Levenberg-Marquardt{' with the reference correction' if correct else ''}")
     print(f"fit through {args.method} {renderer.knobs if args.method == 'splat' else ''}".rstrip() +
-          f": {len(cameras)} views, {args.steps} steps (setup {t_setup:.1f} s)")
+          f": {len(cameras)} views, {how} (setup {t_setup:.1f} s)")
     t0, c0 = time.perf_counter(), time.process_time()
     knobs_free = {k: v for k, v in knobs.items() if k != "grid"}
-    result = fit(renderer, lights, cameras, targets, steps=args.steps, lr=args.lr, fit_eta=args.fit_eta,
-                 progress=not args.no_progress, rebuild_every=args.rebuild_every,
-                 rebuild=lambda: build(args.method, mesh, material, dtype=dtype, differentiable=True, **knobs_free))
+    make = lambda: build(args.method, mesh, material, dtype=dtype, differentiable=True, **knobs_free)  # noqa: E731
+    if args.optimizer == "adam":
+        result = fit(renderer, lights, cameras, targets, steps=args.steps, lr=args.lr, fit_eta=args.fit_eta,
+                     progress=not args.no_progress, rebuild_every=args.rebuild_every, rebuild=make)
+    else:
+        if str(Path(__file__).resolve().parent) not in sys.path:
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from fit_lm import fit_lm
+
+        material.raw_eta.requires_grad_(args.fit_eta)
+        groups = [material.log_sigma_tr, material.log_albedo_ratio] + ([material.raw_eta] if args.fit_eta else [])
+        reference_now = lambda: render_targets(scene, mesh, Material.from_json(_params(material)),  # noqa: E731
+                                               cameras, dtype=dtype)
+        result = fit_lm(make, lights, cameras, targets, groups, [True, True] + [False] * args.fit_eta,
+                        correct=reference_now if correct else None, record=lambda: _params(material),
+                        outer=args.outer, inner=args.inner, progress=not args.no_progress)
+        result["params"] = _params(material)
+        result["rebuilds"] = len(result["outer"])
     renderer = result.pop("renderer")
     t_fit, cpu_fit = time.perf_counter() - t0, time.process_time() - c0
     with torch.no_grad():
-        fitted_images = [renderer.render(lights, c).radiance for c in cameras]
+        fitted_images = reference_now() if correct else [renderer.render(lights, c).radiance for c in cameras]
         final_loss = float(sum(view_loss(a, b) for a, b in zip(fitted_images, targets)) / len(cameras))
+    iterations = len(result["trace"])
     out = {"scene": str(args.scene), "method": args.method, "knobs": renderer.knobs, "reasons": reasons,
-           "views": len(cameras), "size": [cameras[0].width, cameras[0].height], "steps": args.steps, "lr": args.lr,
-           "fit_eta": args.fit_eta,
+           "views": len(cameras), "size": [cameras[0].width, cameras[0].height], "optimizer": args.optimizer,
+           "corrected": correct, "fitted_render": "reference" if correct else args.method, "steps": iterations,
+           "lr": args.lr if args.optimizer == "adam" else None, "fit_eta": args.fit_eta,
            "rebuilds": result["rebuilds"], "dtype": str(dtype).replace("torch.", ""),
            "threads": torch.get_num_threads(), "parameterisation": "log sigma_tr, log(sigma_s'/sigma_a), log eta",
            "initial": initial, "fitted": result["params"],
            "loss": result["loss"] + [final_loss], "trace": result["trace"],
            "time_s": {"targets": t_targets, "setup": t_setup, "fit": t_fit, "fit_cpu": cpu_fit,
-                      "per_step": t_fit / args.steps, "total": time.perf_counter() - t_start}}
+                      "per_step": t_fit / max(iterations, 1), "total": time.perf_counter() - t_start}}
+    if args.optimizer == "lm":
+        out["outer"], out["renders"] = result["outer"], result["renders"]
     if target_material is not None:
         out["target"] = {"name": target_material.name, "sigma_a": list(target_material.sigma_a),
                          "sigma_s_prime": list(target_material.sigma_s_prime), "eta": target_material.eta}
@@ -490,7 +539,7 @@ def main(argv=None) -> dict:
     stem = args.json.stem if args.json else "fit"
     _loss_png(out_dir / f"{stem}_loss.png", out["loss"],
               f"{scene.mesh}: fit of {target_material.name if target_material else 'EXR targets'} through "
-              f"{args.method}, {len(cameras)} views")
+              f"{args.method} ({args.optimizer}), {len(cameras)} views")
     _side_by_side(out_dir / f"{stem}_side_by_side.png",
                   [[t, i, f] for t, i, f in zip(targets, initial_images, fitted_images)])
     if args.save_targets and target_material is not None:
@@ -506,8 +555,9 @@ def main(argv=None) -> dict:
 
 def _report(out: dict) -> None:
     fmt = lambda xs: "[" + ", ".join(f"{x:.4g}" for x in xs) + "]"  # noqa: E731
-    print(f"loss {out['loss'][0]:.3e} -> {out['loss'][-1]:.3e} in {out['time_s']['fit']:.1f} s "
-          f"({out['time_s']['per_step']:.2f} s/step; {out['time_s']['fit_cpu']:.1f} s of CPU time on "
+    print(f"loss {out['loss'][0]:.3e} -> {out['loss'][-1]:.3e} ({out['fitted_render']} at the fitted material) in "
+          f"{out['time_s']['fit']:.1f} s ({out['steps']} iterations, {out['time_s']['per_step']:.2f} s each; "
+          f"{out['time_s']['fit_cpu']:.1f} s of CPU time on "
           f"{out['threads']} threads)")
     for key in ("sigma_a", "sigma_s_prime"):
         line = f"{key:14s} fitted {fmt(out['fitted'][key])}"

@@ -57,9 +57,9 @@ def test_tiny_fit_end_to_end(tmp_path):
         "lights": [{"type": "point", "position": [40, 20, 30], "intensity": 3000}],
         "camera": {"eye": [0, 10, 60], "target": [0, 0, 0], "fov_deg": 25, "width": 16, "height": 16}}))
     out = tmp_path / "fit.json"
-    res = fit_material.main([str(scene), "--target-material", "potato", "--views", "2", "--size", "16", "--steps",
-                             "4", "--rebuild-every", "2", "--no-progress", "--json", str(out), "--save-targets",
-                             "--sensitivity"])
+    res = fit_material.main([str(scene), "--target-material", "potato", "--views", "2", "--size", "16", "--optimizer",
+                             "adam", "--steps", "4", "--rebuild-every", "2", "--no-progress", "--json", str(out),
+                             "--save-targets", "--sensitivity"])
     saved = json.loads(out.read_text())
     assert saved["fitted"] == res["fitted"] and saved["method"] == "splat" and saved["rebuilds"] == 2
     assert len(saved["loss"]) == 5 and saved["loss"][-1] < saved["loss"][0]
@@ -72,7 +72,7 @@ def test_tiny_fit_end_to_end(tmp_path):
         assert (tmp_path / name).is_file(), name
     # the EXR targets are accepted as input (the same views), and fit from there
     res2 = fit_material.main([str(scene), "--targets", str(tmp_path / "fit_target0.exr"),
-                              str(tmp_path / "fit_target1.exr"), "--steps", "1", "--no-progress", "--out",
-                              str(tmp_path / "exr")])
+                              str(tmp_path / "fit_target1.exr"), "--optimizer", "adam", "--steps", "1",
+                              "--no-progress", "--out", str(tmp_path / "exr")])
     assert res2["views"] == 2 and res2["size"] == [16, 16]
     assert res2["loss"][0] == pytest.approx(saved["loss"][0], rel=1e-4)  # the same targets, the same start
