@@ -1,4 +1,4 @@
-"""Inverse rendering of a homogeneous translucent material: sigma_a, sigma_s' (and eta) from images, by Adam.
+"""Inverse rendering of a homogeneous translucent material: sigma_a, sigma_s' (and eta) from images.
 
 Recovers sigma_a and sigma_s' per channel (and optionally eta) through a fast differentiable renderer (issue 18).
 
@@ -24,6 +24,17 @@ an inverse crime; Lensch's per-frame cost under autograd re-evaluates its kernel
 distances (measured on the default scene at 48 x 48, atlas 128: 77 s forward + 79 s backward per view against
 1.1 s + 0.8 s for splat). ``--method`` takes any differentiable method (``splat``, ``lensch``, ``icdf``,
 ``hybrid``, ``reference``) for comparison.
+
+**Solver.** ``--optimizer lm`` (default): Levenberg-Marquardt (``fit_lm.py``; the gradient by autograd through the
+fast method, the Gauss-Newton matrix from central differences of its renders, one pair per per-channel parameter
+group) inside a defect-correction loop: each outer iteration renders the reference once (forward only) at the
+current material and fits the fast render plus that difference to the targets, so the fixed point is the material
+whose *reference* image matches the targets and the fast method only supplies the derivatives (``--no-correct``
+drops the correction). The targets are rendered at a finer sample spacing than the correction's
+(:func:`target_spacing`), so the fit does not share their quadrature. ``--optimizer adam``: Adam with a cosine
+decay, the renderer rebuilt every ``--rebuild-every`` steps. Measured (``benchmarks/results/fit.md``, 4 presets x 2
+sizes): every coefficient within 3.1% in 8-36 s with ``lm``; up to 37.5% off without the correction and up to 197%
+after 60 Adam steps.
 
 **Parameterisation.** The optimised parameters are, per channel, :math:`\\log\\sigma_{tr}` (the effective transport
 coefficient :math:`\\sqrt{3\\sigma_a\\sigma_t'}`, which sets how fast light falls off across the surface) and
@@ -55,12 +66,13 @@ along the valley. The loss is the mean over views of the relative squared error
   against the object (the light leaves before it is absorbed). ``--sensitivity`` measures it: on the default scene
   (potato, 3 views at 48 x 48) +10% of sigma_a changes the reference images by 0.72% (red), 1.6% (green) and 4.9%
   (blue) in that channel, +10% of sigma_s' by 3.8%, 4.0% and 6.1%.
-- *The fast method's own error.* The fitted parameters absorb the renderer's error against the reference: at the
-  true potato, splat (eps 0.01) is 4.2%, 4.9%, 7.4% off per channel (relative L2 over the views) at oversample 1
-  and 1.65%, 1.8%, 2.5% at oversample 2. A coefficient whose 10% change moves its images by less than that error
-  (potato's red sigma_a: 0.72% against 1.65%) cannot be recovered to 10% through splat at that budget: the fit
-  matches the splat error by moving it. The same in red on the spot at 20 mm (``benchmarks/results/fit.md``:
-  red sigma_a 236% off, the other coefficients 0-26%).
+- *The fast method's own error* (without the correction, ``--no-correct`` or Adam). The fitted parameters absorb the
+  renderer's error against the reference: at the true potato, splat (eps 0.01) is 4.2%, 4.9%, 7.4% off per channel
+  (relative L2 over the views) at oversample 1 and 1.65%, 1.8%, 2.5% at oversample 2. A coefficient whose 10% change
+  moves its images by less than that error (potato's red sigma_a: 0.72% against 1.65%) cannot be recovered to 10%
+  through splat at that budget: the fit matches the splat error by moving it. The same in red on the spot at 20 mm
+  (``benchmarks/results/fit.md``: red sigma_a 236% off, the other coefficients 0-26%). The reference correction
+  removes this error from the fixed point (potato's red sigma_a within 0.2-0.4% with ``lm``).
 - *eta.* eta enters the Fresnel transmittances in and out and the dipole's boundary term A; its effect is close to
   a change of overall brightness, which trades off against the albedo, so ``--fit-eta`` is off by default (the
   fit holds eta at the target's, 1.3 for all Jensen presets).

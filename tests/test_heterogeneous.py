@@ -3,6 +3,7 @@ of examples/fit_heterogeneous.py."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -98,19 +99,39 @@ def test_heterogeneous_maps_errors():
         HeterogeneousMaps(mesh, distance_scale=float("nan"))
 
 
-def test_tiny_stripe_fit_moves_the_map_towards_the_stripe(tmp_path):
-    """examples/fit_heterogeneous.py on a 42-vertex sphere, 2 views at 12 x 12, 5 Adam steps: the map error falls
-    and the stripe comes out denser than the rest (the targets are the reference integrator's, the fit splats;
-    measured 0.617 -> 0.540, stripe 1.76 against 1.64 outside, loss / 12)."""
+def _fit_heterogeneous():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
     try:
         import fit_heterogeneous
     finally:
         sys.path.pop(0)
-    out = fit_heterogeneous.main(["--subdivisions", "1", "--size", "12", "--views", "2", "--steps", "5", "--lr",
-                                  "0.15", "--no-progress", "--out", str(tmp_path)])
-    err = out["map_rms_error"]
-    assert err["fitted"] < 0.95 * err["initial"], err
-    assert out["mean_md"]["stripe"] > out["mean_md"]["outside"] + 0.05, out["mean_md"]
-    assert out["loss"][-1] < 0.5 * out["loss"][0]
+    return fit_heterogeneous
+
+
+def test_tiny_stripe_fit_recovers_the_lit_map(tmp_path):
+    """examples/fit_heterogeneous.py at its solver (L-BFGS through splatting, corrected by the reference's defect)
+    on a 42-vertex sphere, 3 views at 16 x 16, 2 outer x 15 iterations: the map over the well-lit vertices is
+    recovered (measured RMS 0.615 -> 0.048, max 0.18), the reference at the fitted map matches the targets (loss
+    0.80 -> 4.7e-5), and the fitted map is not the initial one anywhere in the stripe's lit part."""
+    out = _fit_heterogeneous().main(["--subdivisions", "1", "--size", "16", "--views", "3", "--outer", "2",
+                                     "--steps", "15", "--no-progress", "--out", str(tmp_path)])
+    lit = out["map_rms_error_lit"]
+    assert out["lit_vertices"] >= 30 and lit["initial"] > 0.5
+    assert lit["fitted"] < 0.15 * lit["initial"], lit
+    assert out["map_max_error_lit"] < 0.4
+    assert abs(out["mean_md"]["outside"] - 1.0) < 0.1 and out["mean_md"]["stripe"] > 1.7, out["mean_md"]
+    assert out["final_loss"] < 1e-3 * out["outer"][0]["reference_loss"]
     assert (tmp_path / "heterogeneous_maps.png").is_file()
+
+
+def test_vertex_flux_is_the_lit_share_of_each_vertex():
+    """Directional light from +z on a sphere: the flux around each vertex sums to the flux through the sphere's
+    cross-section (pi R^2 E, eta 1: no Fresnel loss), and the lower hemisphere's vertices get none."""
+    from torchsss.geometry import DirectionalLight
+
+    fh = _fit_heterogeneous()
+    mesh = sphere(5.0, 2, dtype=torch.float64)
+    flux = fh.vertex_flux(mesh, [DirectionalLight((0.0, 0.0, -1.0), 2.0)], 0.5)
+    assert float(flux.sum()) / 3 == pytest.approx(math.pi * 25.0 * 2.0, rel=0.02)
+    assert float(flux[mesh.vertices[:, 2] < -2.0].abs().max()) == 0.0  # below the faces that reach z > 0
+    assert float(flux[mesh.vertices[:, 2] > 4.9].min()) > 0.0

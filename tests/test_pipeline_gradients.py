@@ -1,7 +1,8 @@
 """Whole-render gradients against central finite differences (float64): the loss of a rendered image with respect
 to the material module's parameters and to a light's (tensor) intensity, through each differentiable method, built
-once; and with respect to the heterogeneous modifiers M_d and M_i (Shah eq. 7.4) through splatting's per-vertex
-maps and the reference integrator's per-source ones (issue 18, gradient correctness at the pipeline level)."""
+once; and with respect to the heterogeneous modifiers M_d and M_i (Shah eq. 7.4) through the per-vertex maps of
+splatting and of the reference renderer (the methods that take them; the others refuse them by name), and the
+reference integrator's per-source ones (issue 18, gradient correctness at the pipeline level)."""
 
 from __future__ import annotations
 
@@ -88,10 +89,12 @@ def _central_difference(loss, x: torch.Tensor, v: torch.Tensor, h: float) -> flo
     return (plus - minus) / (2 * h)
 
 
+@pytest.mark.parametrize("method", ["splat", "reference"])
 @pytest.mark.parametrize("name", ["distance_scale", "irradiance_scale"])
-def test_splat_render_gradient_wrt_vertex_modifiers(name):
-    """Per-vertex M_d and M_i through the whole splat render: directional derivatives along random directions and
-    the partial derivative of the vertex that matters most, against central differences."""
+def test_render_gradient_wrt_vertex_modifiers(name, method):
+    """Per-vertex M_d and M_i through the whole render of the methods that take them (splat and the reference):
+    directional derivatives along random directions and the partial derivative of the vertex that matters most,
+    against central differences."""
     mesh = sphere(6.0, 2)
     camera = Camera(eye=(0.0, 0.0, 40.0), target=(0.0, 0.0, 0.0), width=10, height=10)
     lights = [PointLight((30.0, 10.0, 30.0), 2e3)]
@@ -100,7 +103,7 @@ def test_splat_render_gradient_wrt_vertex_modifiers(name):
     # a smooth-ish map away from 1 (M_d in [0.7, 1.3], M_i in [0.5, 1.5]) per vertex and channel
     spread = 0.3 if name == "distance_scale" else 0.5
     mod = (1.0 + spread * (2 * torch.rand(v_count, 3, dtype=torch.float64, generator=gen) - 1)).requires_grad_()
-    r = build("splat", mesh, "skin1", dtype=torch.float64, differentiable=True, **{name: mod})
+    r = build(method, mesh, "skin1", dtype=torch.float64, differentiable=True, **{name: mod}, **KNOBS[method])
     weight = torch.rand(1, 3, 10, 10, dtype=torch.float64, generator=gen)
 
     def loss() -> torch.Tensor:
@@ -115,7 +118,7 @@ def test_splat_render_gradient_wrt_vertex_modifiers(name):
         ad = float((grad * v).sum())
         assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, fd)
         assert abs(fd) > 1e-3  # the map matters: the check cannot pass vacuously
-    # the map is seen through the splats' interpolation only: vertices on the far side get no gradient
+    # the map acts through the lit sources only: vertices on the far side from the light get no gradient
     assert int((grad == 0).all(-1).sum()) > 0
 
 

@@ -47,6 +47,7 @@ from torchsss.physics.fresnel import check_fresnel, exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
 from torchsss.pipelines.coarse import coarse_receivers
+from torchsss.pipelines.modifiers import at_sources, vertex_modifiers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_dtype, check_lights, check_objects
 from torchsss.pipelines.specular import specular_radiance
 
@@ -142,11 +143,15 @@ def reference_radiosity_at(
     *,
     max_pairs: int = 1 << 22,
     progress: bool = False,
+    distance_scale: Tensor | None = None,
+    irradiance_scale: Tensor | None = None,
 ) -> Tensor:
     """:math:`B` at receiver points :math:`(M, 3)` from samples with irradiance :math:`(N, 3)`; returns (M, 3).
 
     ``material`` is a profile module (or a record, made into one in the points' dtype). Receivers are processed
-    in blocks (a tqdm bar over receivers when ``progress``); the dtype is the points' dtype.
+    in blocks (a tqdm bar over receivers when ``progress``); the dtype is the points' dtype. ``distance_scale``
+    and ``irradiance_scale`` are the samples' :math:`M_d`, :math:`M_i` (Shah eq. 7.4), :math:`(N, 1)` or
+    :math:`(N, 3)`, or None.
     """
     dtype = points.dtype
     record = not isinstance(material, nn.Module)
@@ -156,13 +161,16 @@ def reference_radiosity_at(
     src_pos = samples.position.to(dtype).unsqueeze(0)
     src_e = irradiance.to(dtype).unsqueeze(0)
     src_a = samples.area.to(dtype).unsqueeze(0)
+    md = None if distance_scale is None else distance_scale.to(dtype).reshape(1, src_pos.shape[1], -1)
+    mi = None if irradiance_scale is None else irradiance_scale.to(dtype).reshape(1, src_pos.shape[1], -1)
     n = max(1, src_pos.shape[1])
     block = max(64, min(points.shape[0], (max_pairs * 8) // n))
     out = []
     with tqdm(total=points.shape[0], desc="reference B(x_o)", unit="px", disable=not progress, leave=False) as bar:
         for start in range(0, points.shape[0], block):
             dst = points[start:start + block].unsqueeze(0)
-            b = reference_radiosity(src_pos, src_e, src_a, dst, profile, max_pairs=max_pairs).squeeze(0)
+            b = reference_radiosity(src_pos, src_e, src_a, dst, profile, max_pairs=max_pairs,
+                                    src_distance_scale=md, src_irradiance_scale=mi).squeeze(0)
             out.append(b.to(dtype))
             bar.update(dst.shape[1])
     if not out:
@@ -209,6 +217,13 @@ class ReferenceRenderer(Renderer):
         refine: with ``stride`` > 1, an interpolated pixel whose four grid corners differ by more than this
             (relative, any channel) is evaluated exactly too (shadow terminators sharper than the grid).
 
+    Per-vertex modifiers ``distance_scale`` :math:`M_d > 0` and ``irradiance_scale`` :math:`M_i \\ge 0`,
+    :math:`(V,)` or :math:`(V, 3)` (Shah eq. 7.4), are constructor arguments, as for
+    :class:`~torchsss.pipelines.splat.SplatRenderer`: they are interpolated at every surface sample, whose profile
+    becomes :math:`M_i R_d(r M_d)`, and may require grad (the integrator is differentiable in them). The default
+    spacing is divided by the largest :math:`M_d` (the narrowest profile sets the quadrature). They need the
+    samples on the mesh's own vertices, so they cannot be combined with ``source_faces`` (ValueError).
+
     Examples:
         >>> from torchsss.geometry import Camera, DirectionalLight, sphere
         >>> r = ReferenceRenderer(sphere(10.0, 2), "skin1", spacing_mm=2.0)
@@ -222,14 +237,27 @@ class ReferenceRenderer(Renderer):
     defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
                     max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=None, refine=0.2)
 
+    def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
+                 irradiance_scale: Tensor | None = None, **kwargs) -> None:
+        self._modifiers = (distance_scale, irradiance_scale)
+        super().__init__(mesh, material, **kwargs)
+
     def _build(self) -> None:
         k = self.knobs
+        self.md, self.mi = vertex_modifiers(*self._modifiers, self.mesh, self.dtype)
+        if (self.md is not None or self.mi is not None) and k["source_faces"] is not None:
+            raise ValueError(f"source_faces: expected None with per-vertex distance_scale / irradiance_scale (they "
+                             f"live on the mesh's own vertices), got {k['source_faces']!r}")
         self.source_mesh = source_mesh(self.mesh, k["source_faces"])
         self.fresnel = check_fresnel(k["fresnel"], ("exact", "schlick"))
         if k["shadows"] not in _SHADOWS:
             raise ValueError(f"shadows: expected one of {_SHADOWS}, got {k['shadows']!r}")
-        spacing = default_spacing(self.material, self.mesh, k["eps"]) if k["spacing_mm"] is None \
-            else float(k["spacing_mm"])
+        if k["spacing_mm"] is None:
+            spacing = default_spacing(self.material, self.mesh, k["eps"])
+            if self.md is not None:  # R_d(r M_d): the largest M_d makes the narrowest profile
+                spacing /= max(1.0, float(self.md.detach().max()))
+        else:
+            spacing = float(k["spacing_mm"])
         if not (math.isfinite(spacing) and spacing > 0):
             raise ValueError(f"spacing_mm: expected a finite value > 0, got {k['spacing_mm']!r}")
         k["spacing_mm"] = spacing
@@ -255,11 +283,14 @@ class ReferenceRenderer(Renderer):
         stats["interpolated"] = int(plan.fill.numel())
         stats["pairs"] = stats["receivers"] * stats["samples"]
         t2 = time.perf_counter()
+        fid, bary = self.samples.face_id, self.samples.bary
+        mods = {"distance_scale": at_sources(self.md, mesh, fid, bary),
+                "irradiance_scale": at_sources(self.mi, mesh, fid, bary)}
         b = reference_radiosity_at(receivers, self.samples, e, self.material, max_pairs=k["max_pairs"],
-                                   progress=self.progress)
+                                   progress=self.progress, **mods)
         exact = plan.refine(b, k["refine"])  # interpolated pixels whose corners disagree: evaluated exactly
         b_exact = reference_radiosity_at(pos_img.reshape(-1, 3)[plan.fill[exact]], self.samples, e, self.material,
-                                         max_pairs=k["max_pairs"]) if exact.numel() else None
+                                         max_pairs=k["max_pairs"], **mods) if exact.numel() else None
         stats["interpolated"] -= int(exact.numel())
         stats["receivers"] += int(exact.numel())
         stats["pairs"] = stats["receivers"] * stats["samples"]

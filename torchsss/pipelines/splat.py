@@ -43,7 +43,6 @@ from typing import ClassVar
 import torch
 from torch import Tensor, nn
 
-from torchsss._checks import check_finite
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer, light_view
@@ -56,6 +55,7 @@ from torchsss.modules.material import material_module
 from torchsss.modules.splat import SplatTranslucency
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
+from torchsss.pipelines.modifiers import at_sources, vertex_modifiers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_lights, check_objects
 from torchsss.pipelines.specular import shadow_mapped_specular
 
@@ -111,7 +111,6 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
     return int(min(max_grid, max(min_grid, 2, math.ceil(oversample * 2.0 * float(radius) / h))))
 
 
-
 def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int) -> tuple[Tensor, ...]:
     """Splat sources of one light: position (S, 3), flux (S, 3), face id (S,), barycentrics (S, 3).
 
@@ -125,28 +124,6 @@ def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: in
     sel = lv.mask[0, 0]
     return (lv.position[0].permute(1, 2, 0)[sel], lv.flux[0].permute(1, 2, 0)[sel], lv.face_id[0, 0][sel],
             lv.bary[0].permute(1, 2, 0)[sel])
-
-
-def _vertex_modifier(value: Tensor | None, name: str, mesh: Mesh, dtype: torch.dtype) -> Tensor | None:
-    """Validate a per-vertex modifier: :math:`(V,)` or :math:`(V, C)` -> :math:`(V, 1 \\text{ or } C)`."""
-    if value is None:
-        return None
-    if not isinstance(value, Tensor) or not value.is_floating_point():
-        raise TypeError(f"{name}: expected a floating tensor of shape (V,) or (V, 3), got {type(value).__name__}")
-    v = mesh.vertices.shape[0]
-    if value.dim() not in (1, 2) or value.shape[0] != v or (value.dim() == 2 and value.shape[1] not in (1, 3)):
-        raise ValueError(f"{name}: expected shape ({v},) or ({v}, 3) (one value per vertex), got "
-                         f"{tuple(value.shape)}")
-    check_finite(value, name)
-    return value.to(device=mesh.vertices.device, dtype=dtype).reshape(v, -1)
-
-
-def _at_sources(attr: Tensor | None, mesh: Mesh, face_id: Tensor, bary: Tensor) -> Tensor | None:
-    """Interpolate a per-vertex attribute :math:`(V, K)` at sources given by face ids and barycentrics."""
-    if attr is None:
-        return None
-    corners = attr[mesh.faces[face_id]]  # (S, 3, K)
-    return (corners * bary.unsqueeze(-1)).sum(1).unsqueeze(0)
 
 
 class SplatRenderer(Renderer):
@@ -183,13 +160,7 @@ class SplatRenderer(Renderer):
         k, mesh, dtype = self.knobs, self.mesh, self.dtype
         if not 0.0 < float(k["eps"]) < 1.0:
             raise ValueError(f"eps: expected a number in (0, 1), got {k['eps']!r}")
-        md = _vertex_modifier(self._modifiers[0], "distance_scale", mesh, dtype)
-        mi = _vertex_modifier(self._modifiers[1], "irradiance_scale", mesh, dtype)
-        if md is not None and not bool((md > 0).all()):
-            raise ValueError(f"distance_scale: expected values > 0, got min {float(md.min())}")
-        if mi is not None and not bool((mi >= 0).all()):
-            raise ValueError(f"irradiance_scale: expected values >= 0, got min {float(mi.min())}")
-        self.md, self.mi = md, mi
+        self.md, self.mi = vertex_modifiers(*self._modifiers, mesh, dtype)
         k["grid"] = splat_grid(mesh, self.material, k["eps"], k["max_grid"], k["oversample"]) if k["grid"] is None \
             else int(k["grid"])
         self.module = SplatTranslucency(self.material, eps=k["eps"], method=k["splat_method"])
@@ -214,8 +185,8 @@ class SplatRenderer(Renderer):
             pos, flux, fid, bary = _light_sources(mesh, light, n, eta, k["peel_layers"])
             splats += int(pos.shape[0])
             b = b + self.module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
-                                src_distance_scale=_at_sources(self.md, mesh, fid, bary),
-                                src_irradiance_scale=_at_sources(self.mi, mesh, fid, bary))
+                                src_distance_scale=at_sources(self.md, mesh, fid, bary),
+                                src_irradiance_scale=at_sources(self.mi, mesh, fid, bary))
         cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
         radiance = exit_radiance(b, cos_o, eta) * gbuf.mask
         if k["specular"]:
