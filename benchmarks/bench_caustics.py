@@ -8,7 +8,10 @@ splats of sigma 1 texel, ``mode="double"``, ``back="search"``, no Fresnel, no ab
 Two sources of the light-view G-buffers, one row each:
 
 - ``mesh``: built by :func:`torchsss.pipelines.caustics.caustic_gbuffers` from a procedural icosphere
-  (``subdivisions=6``, 81920 faces; 5 with ``--quick``) over a ``plane`` receiver — the whole pipeline;
+  (``subdivisions=6``, 81920 faces; 5 with ``--quick``) over a ``plane`` receiver — the whole pipeline, with the
+  default Max vertex normals; at the default knobs (grid = map = 256) also the 5120-face icosphere of the shipped
+  scene ``examples/scenes/glass_sphere.json`` and an 11 x 9 x 8 mm ellipsoid (the icosphere scaled, against its
+  own exact tracer), each with Max's and with the area-weighted normals (column ``normals``);
 - ``analytic``: the closed-form sphere (exact positions and normals at the texel centres), as in
   ``tests/test_caustics.py``.
 
@@ -41,28 +44,39 @@ from torchsss.bench import benchmark_parser, finish_benchmark, setup_benchmark, 
 from torchsss.geometry.lights import DirectionalLight
 from torchsss.geometry.mesh import mesh_from_arrays
 from torchsss.geometry.procedural import plane, sphere
+from torchsss.geometry.shadow import bounding_sphere
 from torchsss.modules.caustics import CausticMap
 from torchsss.pipelines.caustics import caustic_gbuffers
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS_DIR = ROOT / "benchmarks" / "results"
 R, ZC, HALF, IOR, MAP, SIGMA = 10.0, 16.0, 15.0, 1.5, 128, 1.0
+ELLIPSOID = (11.0, 9.0, 8.0)  # semi-axes (mm) of the non-spherical check
 F64 = torch.float64
-COLUMNS = ["source", "splat", "grid", "map", "faces", "rel_rmse", "rel_rmse_binned", "rel_l1", "focus_rel_l1",
-           "energy_ratio", "peak_ratio", "t_module_ms", "t_gbuffers_ms", "t_frame_ms"]
+COLUMNS = ["source", "splat", "grid", "map", "faces", "normals", "rel_rmse", "rel_rmse_binned", "rel_l1",
+           "focus_rel_l1", "energy_ratio", "peak_ratio", "t_module_ms", "t_gbuffers_ms", "t_frame_ms"]
 
 
-def photon_histogram(h: int, m: int, seed: int = 0) -> np.ndarray:
-    """Flux (irradiance 1) reaching the floor per texel of an (h, h) map of half-width HALF, exact sphere."""
+def photon_histogram(h: int, m: int, seed: int = 0, axes: tuple[float, float, float] = (R, R, R)) -> np.ndarray:
+    """Flux (irradiance 1) reaching the floor per texel of an (h, h) map of half-width HALF, exact ellipsoid.
+
+    The ellipsoid has the semi-axes ``axes`` and is centred ZC over the floor (a sphere of radius R by default).
+    """
     rng = np.random.default_rng(seed)
     cell = 2 * HALF / m
     x = (-HALF + (np.arange(m)[None, :] + rng.random((m, m))) * cell).ravel()
     y = (-HALF + (np.arange(m)[:, None] + rng.random((m, m))) * cell).ravel()
-    r2 = x * x + y * y
-    s = r2 < R * R
-    x, y, r2 = x[s], y[s], r2[s]
+    ax = np.asarray(axes, dtype=float)
     c = np.array([0.0, 0.0, ZC])
-    p = np.stack([x, y, ZC + np.sqrt(R * R - r2)], -1)
+
+    def hit(o, d, far):  # ray-ellipsoid intersection in the unit sphere's frame; the gradient normal
+        q, e = (o - c) / ax, d / ax
+        a2, b2, c2 = (e * e).sum(-1), 2 * (q * e).sum(-1), (q * q).sum(-1) - 1.0
+        disc = b2 * b2 - 4 * a2 * c2
+        t = (-b2 + (1 if far else -1) * np.sqrt(np.clip(disc, 0.0, None))) / (2 * a2)
+        p = o + t[:, None] * d
+        n = (p - c) / ax**2
+        return p, n / np.linalg.norm(n, axis=-1, keepdims=True), disc > 0
 
     def snell(i, n, eta):
         cc = -(i * n).sum(-1, keepdims=True)
@@ -70,9 +84,11 @@ def photon_histogram(h: int, m: int, seed: int = 0) -> np.ndarray:
         t = eta * i + (eta * cc - np.sqrt(np.clip(k, 0.0, None))) * n
         return t / np.linalg.norm(t, axis=-1, keepdims=True), k[..., 0] > 0
 
-    t1, _ = snell(np.broadcast_to([0.0, 0.0, -1.0], p.shape), (p - c) / R, 1.0 / IOR)
-    q = p - 2.0 * ((p - c) * t1).sum(-1)[:, None] * t1
-    t2, ok = snell(t1, -(q - c) / R, IOR)
+    down0 = np.broadcast_to([0.0, 0.0, -1.0], (x.size, 3))
+    p, n, s = hit(np.stack([x, y, np.full_like(x, ZC + 2 * ax[2])], -1), down0, far=False)
+    t1, _ = snell(down0[s], n[s], 1.0 / IOR)
+    q, nb, _ = hit(p[s], t1, far=True)
+    t2, ok = snell(t1, -nb, IOR)
     down = ok & (t2[:, 2] < 0)
     q, t2 = q[down], t2[down]
     hit = q - (q[:, 2] / t2[:, 2])[:, None] * t2
@@ -109,9 +125,10 @@ def analytic_inputs(g: int, map_size: int) -> tuple:
             torch.tensor([[0.0, 0.0, 1.0, 0.0]], dtype=F64), torch.ones(1, 1, dtype=F64), vp)
 
 
-def scene_meshes(subdivisions: int):
-    s = sphere(R, subdivisions, dtype=F64)
-    s = mesh_from_arrays(s.vertices + torch.tensor([0.0, 0.0, ZC], dtype=F64), s.faces, dtype=F64, name="sphere")
+def scene_meshes(subdivisions: int, axes: tuple[float, float, float] = (R, R, R)):
+    s = sphere(1.0, subdivisions, dtype=F64)
+    v = s.vertices * torch.tensor(axes, dtype=F64) + torch.tensor([0.0, 0.0, ZC], dtype=F64)
+    s = mesh_from_arrays(v, s.faces, dtype=F64, name="sphere" if len(set(axes)) == 1 else "ellipsoid")
     return s, plane(120.0, 120.0, 4, dtype=F64)
 
 
@@ -166,14 +183,28 @@ def main(argv=None) -> int:
         for splat in ("beam", "gaussian"):
             records.append(measure("analytic", g, analytic_inputs(g, map_size), refs, total, {"faces": None},
                                    repeats, splat))
-        t0 = time.perf_counter()
-        gb = caustic_gbuffers(refractor, receiver, light, g, map_resolution=map_size, margin=HALF / R)
-        t_gb = time.perf_counter() - t0
-        inputs = list(gb.module_inputs())
-        inputs[8] = inputs[8][:, :1]  # one channel: the light is white
-        for splat in ("beam", "gaussian"):
-            records.append(measure("mesh", g, tuple(inputs), refs, total,
-                                   {"faces": refractor.num_faces, "t_gbuffers_ms": 1e3 * t_gb}, repeats, splat))
+        meshes = [("mesh", refractor, hist, "max")]
+        if not args.quick and (g, map_size) == (256, 256):  # the default knobs: the scene's mesh and an ellipsoid
+            ell = photon_histogram(map_size, 2000, args.seed, ELLIPSOID)
+            for normals in ("max", "area"):
+                meshes += [("mesh", scene_meshes(4)[0], hist, normals),
+                           ("ellipsoid", scene_meshes(4, ELLIPSOID)[0], ell, normals),
+                           ("ellipsoid", scene_meshes(5, ELLIPSOID)[0], ell, normals)]
+        for source, mesh, ref_hist, normals in meshes:
+            t0 = time.perf_counter()
+            radius = float(bounding_sphere(mesh)[1])  # the light view spans +-HALF, as the reference's map
+            gb = caustic_gbuffers(mesh, receiver, light, g, map_resolution=map_size, margin=HALF / radius,
+                                  normals=normals)
+            t_gb = time.perf_counter() - t0
+            inputs = list(gb.module_inputs())
+            inputs[8] = inputs[8][:, :1]  # one channel: the light is white
+            mesh_refs = refs if ref_hist is hist else {
+                "beam": ref_hist, "gaussian": ndimage.gaussian_filter(ref_hist, SIGMA, mode="constant", truncate=3.0)}
+            both = source == "mesh" and normals == "max" and mesh is refractor
+            for splat in ("beam", "gaussian") if both else ("beam",):
+                records.append(measure(source, g, tuple(inputs), mesh_refs, float(ref_hist.sum()),
+                                       {"faces": mesh.num_faces, "normals": normals, "t_gbuffers_ms": 1e3 * t_gb},
+                                       repeats, splat))
     print(f"reference: {total:.3f} mm^2 of the sphere's {np.pi * R * R:.3f} reach the map", flush=True)
     name = args.name + ("_quick" if args.quick and args.name == "caustics" else "")
     finish_benchmark(name, records, args.out_dir, columns=COLUMNS, start=start)

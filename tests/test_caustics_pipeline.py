@@ -204,3 +204,14 @@ def test_bench_caustics_quick_smoke(tmp_path):
         for key in ("rel_rmse", "rel_l1", "focus_rel_l1", "energy_ratio", "t_module_ms", "t_frame_ms"):
             assert isinstance(r[key], float) and math.isfinite(r[key]) and r[key] >= 0, (key, r)
         assert abs(r["energy_ratio"] - 1.0) < 0.03 and r["focus_rel_l1"] < 0.05
+
+
+def test_refractor_normals_choice_and_errors():
+    from torchsss.geometry.procedural import sphere
+    from torchsss.pipelines.caustics import refractor_normals
+
+    m = sphere(5.0, 2)
+    assert refractor_normals(m, "max") is m.vertex_normals_max
+    assert refractor_normals(m, "area") is m.vertex_normals
+    with pytest.raises(ValueError, match="normals: expected one of"):
+        refractor_normals(m, "smooth")

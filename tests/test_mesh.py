@@ -159,6 +159,41 @@ def test_sphere_area_normals_volume():
     np.testing.assert_allclose(hi.numpy(), r, rtol=1e-5)
 
 
+@pytest.mark.parametrize("subdivisions", [1, 3, 5])
+def test_max_vertex_normals_are_exact_on_a_sphere(subdivisions):
+    """Max's weights: the radial direction to rounding at any tessellation and centre, where the area weights are off
+    by up to 1e-2 rad (the quantity a caustic's focus amplifies)."""
+    m = sphere(7.0, subdivisions, dtype=torch.float64)
+    shift = torch.tensor([3.0, -40.0, 12.0], dtype=torch.float64)
+    moved = mesh_from_arrays(m.vertices + shift, m.faces, dtype=torch.float64)
+    radial = torch.nn.functional.normalize(moved.vertices - shift, dim=-1)
+    assert float((moved.vertex_normals_max - radial).abs().max()) < 1e-12
+    area_err = float(torch.acos((moved.vertex_normals * radial).sum(-1).clamp(-1, 1)).max())
+    if subdivisions >= 3:  # (the symmetric one-rings of subdivision 1 make the area weights exact too)
+        assert area_err > 1e-4  # the area weights are not exact: the check above can fail
+
+
+def test_max_vertex_normals_on_an_ellipsoid_and_degenerate_corners():
+    """On an ellipsoid (no longer exact) Max's normals are closer to the gradient normal than the area weights (worst
+    vertex); a vertex whose only face is degenerate keeps its area-weighted normal (finite; zero there)."""
+    ax = torch.tensor([11.0, 9.0, 8.0], dtype=torch.float64)
+    s = sphere(1.0, 4, dtype=torch.float64)
+    e = mesh_from_arrays(s.vertices * ax, s.faces, dtype=torch.float64)
+    exact = torch.nn.functional.normalize(e.vertices / ax**2, dim=-1)
+
+    def worst(n):
+        return float(torch.acos((n * exact).sum(-1).clamp(-1, 1)).max())
+
+    assert worst(e.vertex_normals_max) < 0.5 * worst(e.vertex_normals)
+    # a face with a repeated vertex (zero-length edge) next to a healthy one: Mesh() keeps it (no clean-up)
+    v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]], dtype=torch.float64)
+    m = Mesh(v, torch.tensor([[0, 1, 2], [3, 3, 1]]))
+    n = m.vertex_normals_max
+    assert bool(torch.isfinite(n).all())
+    torch.testing.assert_close(n[:3], torch.tensor([[0.0, 0, 1]] * 3, dtype=torch.float64))
+    torch.testing.assert_close(n[3], m.vertex_normals[3])
+
+
 def test_torus_area_normals_volume():
     big, small = 10.0, 3.0
     m = torus(big, small)

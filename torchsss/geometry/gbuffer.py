@@ -81,7 +81,7 @@ class LayerGBuffer(NamedTuple):
 
 
 def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, int], *, farthest: bool = False,
-                  fill: float = math.nan) -> LayerGBuffer:
+                  fill: float = math.nan, normals: Tensor | None = None) -> LayerGBuffer:
     """Rasterize ``mesh`` through ``view_proj`` and interpolate positions and unit normals of one depth layer.
 
     The nearest layer is the z-buffer's; the farthest (``farthest=True``) is found by negating clip-space z, so
@@ -94,6 +94,8 @@ def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, in
         resolution: ``(H, W)``, or one int for a square image.
         farthest: keep the farthest surface instead of the nearest.
         fill: position value where nothing is seen (NaN by default; 0 for the zero-background G-buffers).
+        normals: :math:`(V, 3)` per-vertex normals to interpolate (default :attr:`Mesh.vertex_normals`; the
+            caustics pipeline passes :attr:`Mesh.vertex_normals_max`).
 
     Returns:
         :class:`LayerGBuffer` with batch 1, in the mesh's dtype and device; position and normal are differentiable
@@ -119,7 +121,13 @@ def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, in
     position = interpolate(mesh.vertices, raster, mesh.faces)
     if fill != 0.0:  # interpolate already gives zeros on the background (NaN != 0 too)
         position = torch.where(mask, position, torch.full_like(position, fill))
-    normal = _normalize(interpolate(mesh.vertex_normals, raster, mesh.faces)) * mask
+    if normals is None:
+        normals = mesh.vertex_normals
+    elif not isinstance(normals, Tensor) or normals.shape != mesh.vertices.shape:
+        got = tuple(normals.shape) if isinstance(normals, Tensor) else type(normals).__name__
+        raise ValueError(f"normals: expected a tensor of shape {tuple(mesh.vertices.shape)} (one per vertex), "
+                         f"got {got}")
+    normal = _normalize(interpolate(normals, raster, mesh.faces)) * mask
     depth = torch.where(mask, -raster.depth, raster.depth) if farthest else raster.depth
     return LayerGBuffer(position, normal, mask, depth, raster.face_id, raster.bary)
 

@@ -303,6 +303,43 @@ class Mesh:
         return self._cached("vertex_normals", compute)
 
     @property
+    def vertex_normals_max(self) -> Tensor:
+        """Unit vertex normals, :math:`(V, 3)`, with Max's weights for curved surfaces.
+
+        N. Max, "Weights for computing vertex normals from facet normals" (JGT 1999): each corner adds :math:`(e_1
+        \\times e_2) / (|e_1|^2 |e_2|^2)` of its two edges. Exact when a vertex's one-ring lies on a sphere (any
+        tessellation), and closer to a smooth surface's normal than the area weights of :attr:`vertex_normals` elsewhere
+        (an ellipsoid of 5120 faces: worst angle 1.8e-3 against 7.9e-3 rad). Refraction differentiates the normal field
+        (a caustic's focus amplifies its errors), so the caustics pipeline interpolates these
+        (:func:`~torchsss.geometry.gbuffer.layer_gbuffer`'s ``normals``); shading keeps the area weights, which a sliver
+        with tiny edges cannot dominate. A vertex whose corners are all degenerate (or whose weights cancel) keeps its
+        area-weighted normal.
+
+        Examples:
+            >>> from torchsss.geometry.procedural import sphere
+            >>> m = sphere(10.0, 2, dtype=torch.float64)
+            >>> exact = m.vertices / m.vertices.norm(dim=-1, keepdim=True)
+            >>> float((m.vertex_normals_max - exact).abs().max()) < 1e-12
+            True
+        """
+
+        def compute() -> Tensor:
+            v, f = self.vertices, self.faces
+            acc = torch.zeros_like(v)
+            for k in range(3):
+                e1 = v[f[:, (k + 1) % 3]] - v[f[:, k]]
+                e2 = v[f[:, (k + 2) % 3]] - v[f[:, k]]
+                den = (e1 * e1).sum(-1, keepdim=True) * (e2 * e2).sum(-1, keepdim=True)
+                w = torch.linalg.cross(e1, e2) / den.clamp_min(torch.finfo(v.dtype).tiny)
+                acc = acc.index_add(0, f[:, k], torch.where(den > 0, w, torch.zeros_like(w)))
+            norm = torch.linalg.vector_norm(acc, dim=-1, keepdim=True)
+            ok = torch.isfinite(norm) & (norm > 0)
+            unit = acc / torch.where(ok, norm, torch.ones_like(norm))
+            return torch.where(ok, unit, self.vertex_normals)
+
+        return self._cached("vertex_normals_max", compute)
+
+    @property
     def vertex_areas(self) -> Tensor:
         """Area per vertex in mm², :math:`(V,)`: a third of the adjacent faces' areas (sums to :attr:`area`)."""
 

@@ -39,6 +39,8 @@ class CausticsRenderer(Renderer):
         lookup_scale: field of the receiver's camera-view lookup texture over the camera's.
         shadow_resolution: shadow-map size for the refractor's shadow.
         margin: light-camera half-extent over the refractor's bounding radius.
+        normals: the refractor's vertex normals, ``"max"`` (Max's weights, default) or ``"area"``
+            (:func:`~torchsss.pipelines.caustics.refractor_normals`).
     """
 
     method = "caustics"
@@ -46,7 +48,8 @@ class CausticsRenderer(Renderer):
     defaults: ClassVar[dict] = dict(ior=1.5, absorption=0.0, mode="double", receiver_size_mm=120.0,
                                     receiver_center=(0.0, 0.0, 0.0), albedo=0.8, grid=256, map_resolution=None,
                                     environment=(0.09, 0.1, 0.12), environment_zenith=(0.16, 0.2, 0.3),
-                                    appearance=True, lookup_scale=2.0, shadow_resolution=1024, margin=1.5)
+                                    appearance=True, lookup_scale=2.0, shadow_resolution=1024, margin=1.5,
+                                    normals="max")
 
     def _build(self) -> None:
         k = self.knobs
@@ -63,6 +66,6 @@ class CausticsRenderer(Renderer):
                               map_resolution=k["map_resolution"], albedo=k["albedo"], environment=k["environment"],
                               environment_zenith=k["environment_zenith"], appearance=k["appearance"],
                               lookup_scale=k["lookup_scale"], shadow_resolution=k["shadow_resolution"],
-                              margin=k["margin"], module=self.module)
+                              margin=k["margin"], normals=k["normals"], module=self.module)
         mask = res.receiver_mask | res.refractor_mask
         return RenderResult(res.radiance, res.direct + res.caustic, mask, dict(res.stats))
