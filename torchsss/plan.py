@@ -560,13 +560,22 @@ def _throughput_fit(scene: Scene, mesh: Mesh | None, material: torch.nn.Module, 
     """Lensch's throughput decimation checked on the decimated mesh itself.
 
     ``faces``, or fewer when the vertex throughput of the mesh decimated to ``faces`` is estimated over 0.9 of
-    :data:`MAX_THROUGHPUT_ENTRIES` (one decimation and one estimate; the builder refuses past the cap).
+    :data:`MAX_THROUGHPUT_ENTRIES` (one decimation and one estimate; the builder refuses past the cap); or more,
+    up to the full mesh, when that estimate leaves room under 0.85 of the cap and the mesh decimated to the larger
+    count is estimated within 0.9 of it (a second decimation and estimate). The decimation is what limits Lensch on
+    a long-scattering scan: the side-lit 30 mm marble bunny measured 3.0% at 5,360 faces (estimated 7.0e6
+    entries) and 2.5% at 6,400 (9.6e6).
     """
     mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
     est = estimate_throughput_entries(source_mesh(mesh, faces), material, rows=64)
-    if est <= 0.9 * MAX_THROUGHPUT_ENTRIES:
+    if est > 0.9 * MAX_THROUGHPUT_ENTRIES:
+        return int(faces * math.sqrt(0.8 * MAX_THROUGHPUT_ENTRIES / est))
+    more = min(mesh.num_faces, int(faces * math.sqrt(0.85 * MAX_THROUGHPUT_ENTRIES / max(est, 1.0))))
+    if more < 1.05 * faces:
         return faces
-    return int(faces * math.sqrt(0.8 * MAX_THROUGHPUT_ENTRIES / est))
+    if estimate_throughput_entries(source_mesh(mesh, more), material, rows=64) <= 0.9 * MAX_THROUGHPUT_ENTRIES:
+        return more
+    return faces
 
 
 def candidates(scene: Scene, facts: SceneFacts, tolerance: float,

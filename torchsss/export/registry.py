@@ -27,7 +27,14 @@ from torch.export import Dim
 
 from torchsss.export.adapters import SplatExport
 from torchsss.export.materials import with_material_inputs
-from torchsss.geometry import build_atlas, build_throughput, local_kernel_geometry, sphere, vertex_weights
+from torchsss.geometry import (
+    build_atlas,
+    build_throughput,
+    hat_quadrature,
+    local_kernel_geometry,
+    sphere,
+    vertex_weights,
+)
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.procedural import plane
@@ -138,9 +145,11 @@ def _lensch_parts(res: int = 64):
     atlas = build_atlas(mesh, res, kernel_size=5)
     mat = DipoleMaterial.from_preset("skin1")
     local = LocalResponse(local_kernel_geometry(atlas, 5), mat)
+    # as build_lensch unblended: the throughput integrated over the hats (the detail split in LenschTranslucency);
     # "scatter": the exported graph's summation order, so eager and ORT compare tightly
-    glob = GlobalResponse(vertex_weights(mesh, atlas), build_throughput(mesh, mat), mat, atlas.valid_mask,
-                          method="scatter")
+    tp = build_throughput(mesh, mat)
+    hat = hat_quadrature(mesh, tp, scale_mm=float(mat.spacing(0.01).min()))
+    glob = GlobalResponse(vertex_weights(mesh, atlas), tp, mat, atlas.valid_mask, method="scatter", hat=hat)
     return mesh, atlas, mat, local, glob
 
 
@@ -157,13 +166,14 @@ _LENSCH_RTOL = 5e-5
 
 def _lensch_case() -> ExportCase:
     _, atlas, _, local, glob = _lensch_parts()
-    module = LenschTranslucency(local, glob)
+    module = LenschTranslucency(local, glob, detail=True)
     return ExportCase(
         module=module,
         example_args=(_atlas_irradiance(atlas, 1, 0),),
         test_args=(_atlas_irradiance(atlas, 3, 1),),
         dynamic_shapes=({0: Dim("B")},),
-        description="LenschTranslucency per frame (skin1, 10k-texel sphere atlas, 5x5 kernels, 162 vertices): "
+        description="LenschTranslucency per frame (skin1, 10k-texel sphere atlas, 5x5 kernels, 162 vertices, hat "
+                    "quadrature and detail split): "
                     "irradiance atlas (B, 3, 64, 64) -> radiosity atlas (B, 3, 64, 64)",
         rtol=_LENSCH_RTOL,
         scale=lambda e: module.local(e).abs() + module.global_response(e).abs(),
@@ -172,7 +182,7 @@ def _lensch_case() -> ExportCase:
 
 def _lensch_materials_case() -> ExportCase:
     _, atlas, _, local, glob = _lensch_parts()
-    module = with_material_inputs(LenschTranslucency(local, glob))
+    module = with_material_inputs(LenschTranslucency(local, glob, detail=True))
     inner = module.module
 
     def scale(e, *mat):

@@ -12,18 +12,18 @@ from torchsss.geometry.environment import EnvironmentLight, environment_irradian
 from torchsss.geometry.gbuffer import GBuffer, LightView, camera_gbuffer, light_view
 from torchsss.geometry.lensch import (
     BlendWeights,
+    HatQuadrature,
     LocalKernelGeometry,
     Throughput,
     VertexWeights,
-    WindowOverlap,
     blending_weights,
     build_throughput,
+    hat_quadrature,
     local_kernel_geometry,
     plan_kernel_size,
     plan_lensch,
     throughput_values,
     vertex_weights,
-    window_overlap,
 )
 from torchsss.geometry.lights import (
     DirectionalLight,
@@ -60,6 +60,7 @@ __all__ = [
     "EnvironmentLight",
     "EnvironmentSplats",
     "GBuffer",
+    "HatQuadrature",
     "Light",
     "LightView",
     "LocalKernelGeometry",
@@ -72,7 +73,6 @@ __all__ = [
     "SurfaceSamples",
     "Throughput",
     "VertexWeights",
-    "WindowOverlap",
     "attach_light_view",
     "axis_camera",
     "blending_weights",
@@ -88,6 +88,7 @@ __all__ = [
     "depth_peel",
     "environment_irradiance",
     "environment_splats",
+    "hat_quadrature",
     "incident_light",
     "interpolate",
     "light_camera",
@@ -123,5 +124,4 @@ __all__ = [
     "torus",
     "transform_points",
     "vertex_weights",
-    "window_overlap",
 ]

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
-from torchsss.geometry.lensch import LocalKernelGeometry, Throughput, VertexWeights, WindowOverlap
+from torchsss.geometry.lensch import HatQuadrature, LocalKernelGeometry, Throughput, VertexWeights
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d
 from torchsss.physics.fresnel import check_fresnel, transmittance
@@ -170,25 +170,13 @@ class LocalResponse(nn.Module):
             the profile is far narrower than a texel); ``"point"`` keeps Lensch's point sample.
         copy: copy ``geometry`` and ``correction`` into the buffers (default); ``False`` takes them as they are
             (no second copy of the :math:`(H, W, k, k)` tensors; the caller must not change them afterwards).
-        overlap: optional :class:`~torchsss.geometry.lensch.WindowOverlap` (unblended Lensch): every tap becomes
-            :math:`A(s)\\,(R_d(|x_o - x_s|) - \\gamma(o))`, where :math:`\\gamma(o)` (evaluated from the material,
-            at the receiver's distance scale) is the global term's own weight of the window, so that
-            :math:`B^l + B^g` does not count the near field twice (:func:`~torchsss.geometry.lensch.window_overlap`).
     """
 
     def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
                  distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
-                 mask: Tensor | None = None, self_term: str = "disk", copy: bool = True,
-                 overlap: WindowOverlap | None = None):
+                 mask: Tensor | None = None, self_term: str = "disk", copy: bool = True):
         super().__init__()
         dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k")
-        if overlap is not None:
-            if not isinstance(overlap, WindowOverlap):
-                raise TypeError(f"overlap: expected a torchsss.geometry.lensch.WindowOverlap, got "
-                                f"{type(overlap).__name__}")
-            check_shape(overlap.weight, "overlap.weight", "3,3,H,W", H=dims["H"], W=dims["W"])
-            check_shape(overlap.distance, "overlap.distance", "3,3,H,W", H=dims["H"], W=dims["W"])
-            check_shape(overlap.vertex_area, "overlap.vertex_area", "3,H,W", H=dims["H"], W=dims["W"])
         if not isinstance(copy, bool):
             raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
         self.kernel_size = int(geometry.kernel_size)
@@ -218,32 +206,6 @@ class LocalResponse(nn.Module):
         if irradiance_scale is not None:
             check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
-        # the window overlap, receiver-major: weights and distances (H, W, 9), vertex areas (H, W, 3)
-        for name, t in (("overlap_weight", None if overlap is None else overlap.weight.flatten(0, 1)),
-                        ("overlap_distance", None if overlap is None else overlap.distance.flatten(0, 1)),
-                        ("overlap_area", None if overlap is None else overlap.vertex_area)):
-            self.register_buffer(name, None if t is None else t.detach().permute(1, 2, 0).to(dist.dtype).contiguous())
-
-    def overlap(self, lo: int = 0, hi: int | None = None) -> Tensor | None:
-        r"""The global term's weight :math:`\gamma(o)` of the window for the receiver rows ``lo:hi``.
-
-        :math:`(hi - lo, W, C)` mm^-2 (None without ``overlap``): :math:`\sum_{i \ne j} w_{ij} A_i/3\,
-        R_d(d_{ij} M_d) + \sum_i w_{ii} \int_{disk(A_i/3)} R_d(r M_d)`, :math:`M_d` the receiver's distance scale.
-        """
-        if self.overlap_weight is None:
-            return None
-        hi = self.distance.shape[0] if hi is None else hi
-        w, d, a = self.overlap_weight[lo:hi], self.overlap_distance[lo:hi], self.overlap_area[lo:hi]
-        md = None if self.self_scale is None else self.self_scale[lo:hi]
-        off = torch.tensor([k % 4 != 0 for k in range(9)], device=w.device)  # the 6 off-diagonal pairs
-        src_area = a.repeat_interleave(3, dim=-1)  # pair (i, j) = 3 i + j: source i's area
-        dist = d if md is None else d * md.unsqueeze(-1)
-        f = self.material(dist.unsqueeze(-1))  # (h, W, 9, C)
-        gamma = ((w * src_area * off).unsqueeze(-1) * f).sum(2)
-        disk = _disk_integral(self.material, a, None if md is None else md.unsqueeze(-1).expand_as(a))
-        if disk is None:  # a profile without a closed-form cumulative: the point sample, as the throughput does
-            disk = a.unsqueeze(-1) * self.material(torch.zeros_like(a).unsqueeze(-1))
-        return gamma + (w[..., ::4].unsqueeze(-1) * disk).sum(2)
 
     def kernels(self) -> Tensor:
         """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``).
@@ -289,9 +251,6 @@ class LocalResponse(nn.Module):
             centre = torch.zeros_like(area)
             centre[:, :, c, c] = 1.0
             k = k + centre.unsqueeze(-1) * (disk - k[:, :, c, c]).unsqueeze(2).unsqueeze(2)
-        gamma = self.overlap(lo, hi)
-        if gamma is not None:
-            k = k - area.unsqueeze(-1) * gamma.unsqueeze(2).unsqueeze(2)
         k = k.permute(4, 0, 1, 2, 3)
         if self.correction is not None:
             k = k + self.correction[:, lo:hi]
@@ -325,10 +284,14 @@ class GlobalResponse(nn.Module):
         valid: :math:`(1, 1, H, W)` texels to reconstruct on.
         distance_scale: optional :math:`(1, 1, H, W)` :math:`M_d` atlas, projected onto the source vertices.
         method: ``"auto"``, ``"csr"`` or ``"scatter"`` (see :func:`torchsss.ops.sparse.sparse_apply_t`).
+        hat: optional :class:`~torchsss.geometry.lensch.HatQuadrature` of the throughput: every entry is
+            integrated over the source's hat (its moment rule, and the near entries, the self entries among them,
+            term by term, :math:`F_{ij} = \\sum_t w_t R_d(d_t M_{d,i})`) instead of sampled at the source vertex
+            (and the self entries' disk integral); see :func:`~torchsss.geometry.lensch.hat_quadrature`.
     """
 
     def __init__(self, weights: VertexWeights, throughput: Throughput, material: nn.Module, valid: Tensor, *,
-                 distance_scale: Tensor | None = None, method: str = "auto"):
+                 distance_scale: Tensor | None = None, method: str = "auto", hat: HatQuadrature | None = None):
         super().__init__()
         dims = check_shape(weights.vertex_ids, "weights.vertex_ids", "1,3,H,W")
         check_shape(valid, "valid", "1,1,H,W", H=dims["H"], W=dims["W"])
@@ -340,6 +303,7 @@ class GlobalResponse(nn.Module):
         self.register_buffer("bary", weights.bary.clone(), persistent=False)
         self.register_buffer("valid", valid.to(weights.bary.dtype), persistent=False)
         dist = throughput.distance.clone()
+        vertex_md = None
         if distance_scale is not None:
             check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
             num = torch.zeros(self.num_vertices, dtype=dist.dtype, device=dist.device)
@@ -352,7 +316,34 @@ class GlobalResponse(nn.Module):
             vertex_md = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)),
                                     torch.ones_like(den)).clamp_min(1e-6)
             dist = dist * vertex_md[throughput.rows]
+        moments = None
+        if hat is not None:
+            if not isinstance(hat, HatQuadrature):
+                raise TypeError(f"hat: expected a torchsss.geometry.lensch.HatQuadrature, got {type(hat).__name__}")
+            nnz = throughput.rows.numel()
+            if hat.centroid_distance.shape != (nnz,) or (hat.entries.numel() and int(hat.entries.max()) >= nnz):
+                raise ValueError(f"hat: expected the quadrature of this throughput ({nnz} entries), got one of "
+                                 f"{hat.centroid_distance.shape[0]}")
+            scale = None if vertex_md is None else vertex_md.to(dist.dtype)
+            # the moment rule's four distances, each times the source's M_d
+            r = hat.centroid_distance.to(dist.dtype)
+            sr = hat.radial_var.to(dist.dtype).sqrt()
+            moments = [r, r + sr, (r - sr).abs(), (r * r + hat.transverse_var.to(dist.dtype)).sqrt()]
+            if scale is not None:
+                moments = [m * scale[throughput.rows] for m in moments]
+            dist = moments[0]
+            hd = hat.distance.to(dist.dtype)
+            if scale is not None:  # the source's M_d, as for the sampled entries
+                hd = hd * scale[throughput.rows[hat.entries][hat.term_entry]]
         self.register_buffer("distance", dist)
+        self.register_buffer("hat_moments", None if moments is None else torch.stack(moments[1:]), persistent=False)
+        self.register_buffer("hat_entries", None if hat is None else hat.entries.clone(), persistent=False)
+        # int64: the exported graph's ScatterND takes no int32 indices (a cast before it did not survive export)
+        self.register_buffer("hat_term_entry", None if hat is None else hat.term_entry.to(torch.int64),
+                             persistent=False)
+        self.register_buffer("hat_distance", None if hat is None else hd, persistent=False)
+        self.register_buffer("hat_weight", None if hat is None else hat.weight.to(dist.dtype).clone(),
+                             persistent=False)
         self.register_buffer("source_area", throughput.source_area.clone())
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
         # not per nonzero: on 6M nonzeros the closed-form cumulative for all of them took 8 s of a first frame)
@@ -379,18 +370,49 @@ class GlobalResponse(nn.Module):
     def throughput_values(self) -> Tensor:
         """:math:`(nnz, C)` values :math:`A_i/3\\, R_d(d_{ij})` from the current material.
 
-        Diagonal entries (present unless the throughput was built with ``zero_diagonal``) use the disk integral
-        of :math:`R_d` over the vertex area instead of :math:`A_i/3\\, R_d(0)` (see :class:`LocalResponse`).
+        With a hat quadrature (``hat``) every entry is its moment rule and its near entries are
+        :math:`\\sum_t w_t R_d(d_t)` (:class:`~torchsss.geometry.lensch.HatQuadrature`); otherwise the diagonal
+        entries (present unless the throughput was built with ``zero_diagonal``) use the disk integral of
+        :math:`R_d` over the vertex area instead of :math:`A_i/3\\, R_d(0)` (see :class:`LocalResponse`).
         """
         vals = self.source_area.unsqueeze(-1) * self.material(self.distance.unsqueeze(-1))
+        if self.hat_entries is not None:
+            # the moment rule: 1/2 R(r + s_r) + 1/2 R(|r - s_r|) + R(sqrt(r^2 + s_t^2)) - R(r), times A_i / 3
+            f = self.material(self.hat_moments.unsqueeze(-1))  # (3, nnz, C)
+            vals = self.source_area.unsqueeze(-1) * (0.5 * (f[0] + f[1]) + f[2]) - vals
+            return vals.index_copy(0, self.hat_entries, self.hat_values(vals.shape[-1], vals.dtype))
         disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
         if disk is None:
             return vals
         return vals.index_copy(0, self.diagonal_index, disk)
 
-    def vertex_radiosity(self, irradiance: Tensor) -> Tensor:
-        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, N, C)` vertex radiosity :math:`B^g`."""
-        eg = self.vertex_irradiance(irradiance)
+    def hat_values(self, channels: int, dtype: torch.dtype) -> Tensor:
+        """:math:`(E, C)` the near entries of the hat quadrature, :math:`\\sum_t w_t R_d(d_t)`.
+
+        Outside autograd and tracing the terms are evaluated in blocks (about 1M terms, ~50 MB of profile
+        temporaries, at a time); under autograd or export in one expression.
+        """
+        n = self.hat_entries.shape[0]
+        total = self.hat_distance.shape[0]
+        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
+                torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+            terms = self.hat_weight.unsqueeze(-1) * self.material(self.hat_distance.unsqueeze(-1))
+            out = torch.zeros(n, terms.shape[-1], dtype=terms.dtype, device=terms.device)
+            return out.index_add(0, self.hat_term_entry, terms)
+        out = torch.zeros(n, channels, dtype=dtype, device=self.hat_distance.device)
+        block = 1 << 20
+        for lo in range(0, total, block):
+            hi = min(total, lo + block)
+            terms = self.hat_weight[lo:hi].unsqueeze(-1) * self.material(self.hat_distance[lo:hi].unsqueeze(-1))
+            out.index_add_(0, self.hat_term_entry[lo:hi], terms.to(dtype))
+        return out
+
+    def vertex_radiosity(self, irradiance: Tensor, vertex_irradiance: Tensor | None = None) -> Tensor:
+        """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, N, C)` vertex radiosity :math:`B^g`.
+
+        ``vertex_irradiance``: :meth:`vertex_irradiance` of ``irradiance`` when the caller has it already.
+        """
+        eg = self.vertex_irradiance(irradiance) if vertex_irradiance is None else vertex_irradiance
         key = _material_key(self.material)
         values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
         return sparse_apply_t(eg, self._pattern(), values, method=self.method)
@@ -419,8 +441,15 @@ class LenschTranslucency(nn.Module):
     """The composed method: radiosity atlas :math:`B = B^l + B^d + B^{g0}` and, on request, the camera image.
 
     With blending (``direct`` given) the throughput must have been built with a zero diagonal and the local
-    kernels carry the blending correction; without it the module returns :math:`B^l + B^g` as given (the
-    unblended variant, kept so that what blending buys is measurable).
+    kernels carry the blending correction. Without it, ``detail=True`` (the unblended default of
+    :func:`~torchsss.pipelines.lensch.build_lensch`) splits the irradiance into the part the vertex hats carry,
+    :math:`\\tilde E = \\sum_i E^g_i \\psi_i` (the dual projection, reconstructed on the atlas), and the detail
+    :math:`E - \\tilde E`: the throughput (with its near entries integrated over the hats,
+    :class:`GlobalResponse`'s ``hat``) answers :math:`\\tilde E` at every distance, the local kernels answer the
+    detail (a shadow edge, a texture) within their window, :math:`B = B^g + B^l(E - \\tilde E)`, so that no part of
+    the near field is counted twice whatever the window's size (a smooth irradiance has no detail: the local term
+    vanishes). ``detail=False`` returns :math:`B^l(E) + B^g` as given (Lensch's plain sum, which counts the window's
+    near field in both terms; kept so that what the split buys is measurable).
 
     Args:
         local: :class:`LocalResponse`.
@@ -428,11 +457,18 @@ class LenschTranslucency(nn.Module):
         direct: optional :math:`(C, 3, H, W)` blending weights :math:`w_\\nu` of Lensch §5.4.
         albedo: optional :math:`(1, C, H, W)` surface texture :math:`T_\\rho` (Lensch eq. 13-14), > 0.
         albedo_at_vertices: :math:`(N, C)` :math:`T_\\rho(v_i)`, required with ``albedo``.
+        detail: the local kernels act on the irradiance's detail :math:`E - \\tilde E` (unblended only).
     """
 
     def __init__(self, local: LocalResponse, global_response: GlobalResponse, *, direct: Tensor | None = None,
-                 albedo: Tensor | None = None, albedo_at_vertices: Tensor | None = None):
+                 albedo: Tensor | None = None, albedo_at_vertices: Tensor | None = None, detail: bool = False):
         super().__init__()
+        if not isinstance(detail, bool):
+            raise TypeError(f"detail: expected a bool, got {type(detail).__name__}")
+        if detail and direct is not None:
+            raise ValueError("detail: expected False with blending (direct given): the blending weights already "
+                             "split the near field, got True")
+        self.detail = detail
         self.local = local
         self.global_response = global_response
         self.register_buffer("direct", None if direct is None else direct.detach().clone())
@@ -459,7 +495,8 @@ class LenschTranslucency(nn.Module):
         check_shape(irradiance, "irradiance", "B,C,H,W", H=h, W=w)
         check_finite(irradiance, "irradiance")
         g = self.global_response
-        vert = g.vertex_radiosity(irradiance)
+        eg = g.vertex_irradiance(irradiance)
+        vert = g.vertex_radiosity(irradiance, eg)
         if self.direct is not None:
             b, c = irradiance.shape[:2]
             src = (irradiance.reshape(b, c, 1, -1) * self.direct.reshape(1, c, 3, -1)).reshape(b, c, -1)
@@ -471,4 +508,6 @@ class LenschTranslucency(nn.Module):
             glob = g.reconstruct(vert) * self.albedo
         else:
             glob = g.reconstruct(vert)
+        if self.detail:
+            return self.local(irradiance - g.reconstruct(eg)) + glob
         return self.local(irradiance) + glob
