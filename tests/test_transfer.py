@@ -88,3 +88,29 @@ def test_atlas_method_on_a_decimated_source_sees_the_full_mesh(method, side_lit_
     assert err_new < 0.75 * err_old, (err_new, err_old)
     again = r.render(lights, cam)  # the camera's uv is reused: same frame
     torch.testing.assert_close(again.radiance, new.radiance)
+
+
+def test_atlas_view_moves_pixels_off_empty_texels_onto_their_chart():
+    """A pixel whose bilinear footprint holds no valid texel (the tip of a sliver face's uv triangle, farther than
+    the gutter from its chart's texels: a black pixel on the 5 mm chicken bunny) reads the nearest valid texel
+    centre instead; pixels with a valid footprint and uncovered pixels keep their uv."""
+    from torchsss.geometry import build_atlas
+    from torchsss.pipelines.atlas_view import AtlasView
+
+    mesh = sphere(5.0, 2)
+    atlas = build_atlas(mesh, 64, kernel_size=3)
+    view = AtlasView(mesh, mesh, atlas)
+    rows, cols = (~atlas.valid_mask[0, 0]).nonzero(as_tuple=True)
+    empty = torch.tensor([(float(cols[0]) + 0.5) / 64, 1.0 - (float(rows[0]) + 0.5) / 64])
+    vr, vc = atlas.valid_mask[0, 0].nonzero(as_tuple=True)
+    inside = torch.tensor([(float(vc[5]) + 0.5) / 64, 1.0 - (float(vr[5]) + 0.5) / 64])
+    uv = torch.stack([empty, inside, empty], -1).T.reshape(1, 3, 2).permute(0, 2, 1)[:, :, None, :]  # (1, 2, 1, 3)
+    mask = torch.tensor([True, True, False]).reshape(1, 1, 1, 3)
+    assert float(atlas.sample(atlas.valid_mask.float(), uv)[0, 0, 0, 0]) == 0.0  # the test's pixel is empty
+    out = view._onto_valid(uv, mask)
+    assert float(atlas.sample(atlas.valid_mask.float(), out)[0, 0, 0, 0]) == pytest.approx(1.0)
+    torch.testing.assert_close(out[..., 1:], uv[..., 1:])  # a valid footprint and an uncovered pixel: unchanged
+    # the nearest valid centre: no valid texel centre is closer to the empty point
+    centres = torch.stack([(vc.float() + 0.5) / 64, 1.0 - (vr.float() + 0.5) / 64], -1)
+    d_best = float((centres - empty).norm(dim=-1).min())
+    assert float((out[0, :, 0, 0] - empty).norm()) == pytest.approx(d_best, abs=1e-6)

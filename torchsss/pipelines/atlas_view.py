@@ -10,6 +10,7 @@ used (:func:`~torchsss.geometry.atlas_frame.camera_uv`).
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from torchsss.geometry.atlas import Atlas
@@ -69,5 +70,31 @@ class AtlasView:
             uv, _ = camera_uv(self.mesh, self.atlas, camera)
         else:
             uv = transferred_uv(self.locator, self.atlas.face_uvs, position, mask)
+        uv = self._onto_valid(uv, mask)
         self._camera, self._uv = camera, uv
         return uv
+
+    def _onto_valid(self, uv: Tensor, mask: Tensor) -> Tensor:
+        """Move the covered pixels whose bilinear footprint holds no valid texel to the nearest valid texel centre.
+
+        A sliver face's uv triangle can cover no texel centre over most of its length, farther than the gutter
+        reaches from its chart's texels: a pixel there read 0 (a black pixel on the 5 mm chicken bunny, its
+        source mesh decimated to 5,780 faces). Gutters keep charts apart, so the nearest valid texel in uv is
+        one of the pixel's own chart.
+        """
+        valid = self.atlas.valid_mask.to(uv.dtype)
+        weight = self.atlas.sample(valid, uv)[0, 0]
+        bad = mask[0, 0] & (weight <= 1e-6)
+        if not bool(bad.any()):
+            return uv
+        from scipy.spatial import cKDTree
+
+        h, w = self.atlas.shape
+        rows, cols = self.atlas.valid_mask[0, 0].nonzero(as_tuple=True)
+        centres = torch.stack([(cols.to(torch.float64) + 0.5) / w, 1.0 - (rows.to(torch.float64) + 0.5) / h], -1)
+        query = uv[0].permute(1, 2, 0)[bad].detach().to(torch.float64).cpu().numpy()
+        _, idx = cKDTree(centres.cpu().numpy()).query(query)
+        out = uv.clone()
+        fixed = centres[torch.as_tensor(idx, device=centres.device)].to(uv.dtype).to(uv.device)
+        out[0, :, bad] = fixed.T
+        return out
