@@ -76,7 +76,28 @@ def test_no_step_along_chart_edges(default_64, method, knobs):
 def test_the_chart_less_split_shows_its_seam(default_64):
     """The negative control: the hybrid split without chart ids (the filter reads across charts and gutters)."""
     s, mesh, camera, ref = default_64
-    r = build("hybrid", mesh, s.material, samples=16384)
+    r = build("hybrid", mesh, s.material, samples=16384, local="atlas")
     r.module.chart_id = None
     seam, rest, n = _step(r.render(list(s.lights), camera), ref, seam_band(r, camera))
     assert n >= 100 and seam - rest < -5 * MAX_STEP, (seam, rest)
+
+
+def test_hybrid_noise_does_not_gather_along_chart_edges(default_64):
+    """The speckle the README's gallery showed along chart edges: Chang's atlas filter hands the near field across a
+    seam to the sampled global term, so the relative RMS error within the seam band is several times that elsewhere
+    (measured at N = 4096: 13.8% against 3.3%); gathered over the surface (the default) it is not (2.2% against
+    1.8%), and smaller everywhere."""
+    s, mesh, camera, ref = default_64
+    rms = {}
+    for local in ("surface", "atlas"):
+        r = build("hybrid", mesh, s.material, samples=4096, local=local)
+        out = r.render(list(s.lights), camera)
+        band = seam_band(r, camera)
+        both = out.mask[0, 0] & ref.mask[0, 0]
+        rel = (out.radiance - ref.radiance).sum(1)[0] / ref.radiance.sum(1)[0].clamp_min(1e-12)
+        rms[local] = (float(rel[band & both].pow(2).mean().sqrt()), float(rel[~band & both].pow(2).mean().sqrt()))
+        assert out.stats["local_term"] == local
+    print(rms)
+    assert rms["surface"][0] < 1.5 * rms["surface"][1], rms
+    assert rms["atlas"][0] > 2.5 * rms["atlas"][1], rms  # the control: the check can fail
+    assert rms["surface"][0] < 0.5 * rms["atlas"][0], rms

@@ -66,6 +66,7 @@ from torchsss.geometry.lensch import (
     estimate_throughput_entries,
 )
 from torchsss.geometry.mesh import Mesh, decimate, surface_deviation
+from torchsss.geometry.sampling import faces_for_spacing
 from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK, WARM_WORK, compile_mode, is_warm
 from torchsss.physics.budget import splat_alias_error
@@ -287,14 +288,8 @@ def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
 
 
 def source_faces(area_mm2: float, spacing_mm: float) -> int:
-    """Faces that carry the reference's sources at ``spacing_mm``: :math:`8A/h^2`, at least 500.
-
-    The sampler puts :math:`\\lceil l / h \\rceil^2` samples on a face with longest edge :math:`l`; a decimated
-    mesh's faces are irregular, so fewer, larger faces do not mean fewer samples: on a decimated sphere the count
-    is least (1.15 samples per face) at :math:`8A/h^2` faces (edges about :math:`0.54 h`) and 10% and 20% higher
-    at 6 and 4 :math:`A/h^2`.
-    """
-    return max(500, int(8.0 * area_mm2 / (spacing_mm * spacing_mm)))
+    """Faces that carry the reference's sources at ``spacing_mm``: ``faces_for_spacing`` of the geometry layer."""
+    return faces_for_spacing(area_mm2, spacing_mm)
 
 
 def reference_spacing(profile: _Profile, size_mm: float, eps: float) -> float:

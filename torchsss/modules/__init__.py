@@ -1,7 +1,7 @@
 """nn.Modules of torchsss: every ``forward()`` takes and returns tensors, so it trains, compiles and exports."""
 
 from torchsss.modules.caustics import CausticMap
-from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
+from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency, SurfaceLocal
 from torchsss.modules.heterogeneous import HeterogeneousMaps, edge_smoothness
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
 from torchsss.modules.material import (
@@ -33,6 +33,7 @@ __all__ = [
     "LocalResponse",
     "NewtonRaphsonSearch",
     "SplatTranslucency",
+    "SurfaceLocal",
     "TabulatedMaterial",
     "check_profile",
     "edge_smoothness",

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
 from torchsss.geometry.lensch import HatQuadrature, LocalKernelGeometry, Throughput, VertexWeights
+from torchsss.modules.cache import ValueCache, material_key
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d
 from torchsss.physics.fresnel import check_fresnel, transmittance
@@ -47,34 +48,6 @@ def _disk_integral(material: nn.Module, area: Tensor, scale: Tensor | None = Non
         return cumulative(radius)
     md = scale.unsqueeze(-1)
     return cumulative(radius * md) / (md * md)
-
-
-def _material_key(material: nn.Module) -> tuple | None:
-    """A key that changes whenever a parameter or buffer of ``material`` changes; None when caching is unsafe.
-
-    Cached kernels and throughput values are only reused outside autograd and tracing (relighting a fixed
-    material); whenever gradients are recorded the values are recomputed so that they flow to the material.
-    """
-    if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
-            torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
-        return None
-    tensors = list(material.parameters()) + list(material.buffers())
-    return tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in tensors)
-
-
-class _Cache:
-    """One cached tensor per key (not a buffer: it never enters state_dict or an exported graph)."""
-
-    def __init__(self):
-        self.key: tuple | None = None
-        self.value: Tensor | None = None
-
-    def get(self, key: tuple | None, compute):
-        if key is None:
-            return compute()
-        if key != self.key or self.value is None:
-            self.value, self.key = compute(), key
-        return self.value
 
 
 def _window_gather(image: Tensor, k: int) -> Tensor:
@@ -202,7 +175,7 @@ class LocalResponse(nn.Module):
         if correction is not None:
             correction = correction.detach().clone() if copy else correction.detach()
         self.register_buffer("correction", correction)
-        self._cache = _Cache()
+        self._cache = ValueCache()
         if irradiance_scale is not None:
             check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
@@ -265,7 +238,7 @@ class LocalResponse(nn.Module):
         """
         check_finite(irradiance, "irradiance")
         e = irradiance if self.irradiance_scale is None else irradiance * self.irradiance_scale
-        key = _material_key(self.material)
+        key = material_key(self.material)
         k = self._cache.get(None if key is None else (*key, self.distance.device), self.kernels)
         out = sv_conv2d(e.transpose(0, 1), k)  # channels as the kernel batch, the batch as channels
         return out.transpose(0, 1)
@@ -353,7 +326,7 @@ class GlobalResponse(nn.Module):
         self.pattern = pattern
         for name in ("rows", "cols", "t_crow", "t_col", "t_perm"):
             self.register_buffer(f"_p_{name}", getattr(pattern, name), persistent=False)
-        self._cache = _Cache()
+        self._cache = ValueCache()
 
     def _pattern(self):
         return self.pattern._replace(rows=self._p_rows, cols=self._p_cols, t_crow=self._p_t_crow,
@@ -433,7 +406,7 @@ class GlobalResponse(nn.Module):
         ``vertex_irradiance``: :meth:`vertex_irradiance` of ``irradiance`` when the caller has it already.
         """
         eg = self.vertex_irradiance(irradiance) if vertex_irradiance is None else vertex_irradiance
-        key = _material_key(self.material)
+        key = material_key(self.material)
         values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
         return sparse_apply_t(eg, self._pattern(), values, method=self.method)
 

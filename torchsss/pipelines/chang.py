@@ -28,12 +28,17 @@ from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
-from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency
+from torchsss.geometry.neighbours import ball_pairs
+from torchsss.geometry.sampling import faces_for_spacing, surface_samples
+from torchsss.geometry.transfer import SurfaceLocator, transferred_uv
+from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency, SurfaceLocal
 from torchsss.modules.material import material_module
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import AtlasView, source_mesh
+from torchsss.pipelines.coarse import coarse_receivers
+from torchsss.pipelines.reference import default_spacing
 from torchsss.pipelines.renderer import Renderer, RenderResult
 from torchsss.pipelines.specular import shadow_mapped_specular
 
@@ -43,12 +48,18 @@ __all__ = ["ChangScene", "HybridRenderer", "IcdfRenderer", "build_hybrid", "buil
 
 @dataclass
 class ChangScene:
-    """What :func:`build_icdf` / :func:`build_hybrid` precompute for one mesh and material."""
+    """What :func:`build_icdf` / :func:`build_hybrid` precompute for one mesh and material.
+
+    ``local`` and ``sample_position`` (:math:`(N, 3)` mm): the hybrid's :class:`~torchsss.modules.chang.SurfaceLocal`
+    and its surface samples (``local="surface"``); None otherwise.
+    """
 
     mesh: Mesh
     atlas: Atlas
     module: nn.Module
     stats: dict
+    local: SurfaceLocal | None = None
+    sample_position: Tensor | None = None
 
 
 def sample_uniforms(n: int, *, seed: int = 0, sobol: bool = True, dtype: torch.dtype = torch.float32,
@@ -129,13 +140,23 @@ def build_icdf(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: 
 
 
 def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution: int = 512, kernel_size: int = 7,
-                 rings: int = 8, per_ring: int = 16, c: float = 0.1, k: float = 1.5, local_eps: float = 1e-3,
+                 rings: int = 8, per_ring: int = 16, c: float = 0.1, k: float = 1.5, local_eps: float | None = None,
                  levels: int | None = None, max_pairs: int = DEFAULT_MAX_PAIRS, max_reach: float | None = 0.8,
-                 progress: bool = False) -> ChangScene:
+                 local: str = "surface", local_spacing_mm: float | None = None, progress: bool = False) -> ChangScene:
     """Atlas + :class:`HybridTranslucency` for ``mesh`` in ``material``.
 
     ``kernel_size`` sets the atlas gutters (``kernel_size // 2`` texels). The split radius is Chang's closed form
     for a dipole and :func:`profile_rp` for other profiles.
+
+    **The local term.** ``local="surface"`` (default): gathered in 3-D from surface samples at
+    ``local_spacing_mm`` (default the reference's spacing of the material, :func:`~torchsss.pipelines.reference.
+    default_spacing`) within the local bound of every receiver (:class:`~torchsss.modules.chang.SurfaceLocal`), and
+    the global term takes :math:`R_d (1 - W_l^b)` for every pair; the default ``local_eps`` is then 1e-2 (the bound
+    4.4 instead of 6.0 mm on the default scene, half the pairs, the same error). ``local="atlas"``: Chang's filter
+    of ``rings`` x ``per_ring`` + 1 atlas lookups with the chart-aware global term (``local_eps`` 1e-3), which hands
+    the near field across every chart seam to the sampled global term. Default scene at 128 x 128: N = 8192, 1.94%
+    relative RMSE with the atlas filter (6.2% within 1 mm of a chart edge, 1.7% elsewhere: speckled seams), 0.53%
+    gathered over the surface (0.8% and 0.7%); N = 2048, 6.6% and 2.3%.
 
     **Only where the scene allows it.** The local filter takes the surface as its tangent plane out to the local
     bound :math:`r_b`; on an object not much larger than :math:`r_b` that is false (measured: a 12 mm skin1 sphere,
@@ -147,6 +168,10 @@ def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution
     if max_reach is not None and (isinstance(max_reach, bool) or not isinstance(max_reach, (int, float))
                                   or not max_reach > 0):
         raise ValueError(f"max_reach: expected a number > 0 or None, got {max_reach!r}")
+    if local not in ("surface", "atlas"):
+        raise ValueError(f"local: expected 'surface' or 'atlas', got {local!r}")
+    if local_eps is None:
+        local_eps = 1e-2 if local == "surface" else 1e-3
     t0 = time.perf_counter()
     mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
                           device=mesh.vertices.device)
@@ -159,13 +184,34 @@ def build_hybrid(mesh: Mesh, material: Material | nn.Module, *, atlas_resolution
     radius = float((mesh.vertices - centre).norm(dim=-1).amax())
     reason = f"on: local bound {module.bound:.2f} mm, object radius {radius:.2f} mm"
     if max_reach is not None and module.bound > max_reach * radius:
+        why = "the filter's flat-surface assumption fails" if local == "atlas" else \
+            "the local region would hold most of the object: the all-pairs sum, not a split"
         reason = (f"off: the local bound {module.bound:.2f} mm exceeds {max_reach} x the object's radius "
-                  f"{radius:.2f} mm (the filter's flat-surface assumption fails); every source is sampled")
+                  f"{radius:.2f} mm ({why}); every source is sampled")
         module = HybridTranslucency.from_atlas(atlas, mat, r_p=0.0, k=k, rings=rings, per_ring=per_ring,
                                                local_eps=local_eps, levels=levels, max_pairs=max_pairs)
-    stats = dict(t_atlas_s=t1 - t0, t_precompute_s=time.perf_counter() - t0, r_p_mm=module.r_p,
-                 local_bound_mm=module.bound, rings=rings, per_ring=per_ring, split=reason)
-    return ChangScene(mesh, atlas, module, stats)
+    stats = dict(t_atlas_s=t1 - t0, r_p_mm=module.r_p, local_bound_mm=module.bound, rings=rings,
+                 per_ring=per_ring, split=reason, local=local, local_eps=local_eps)
+    surface = position = None
+    if local == "surface" and module.bound > 0:
+        spacing = default_spacing(mat, mesh) if local_spacing_mm is None else float(local_spacing_mm)
+        if not (math.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"local_spacing_mm: expected a finite number > 0 or None, got {local_spacing_mm!r}")
+        # a finely tessellated mesh holds a sample per face whatever the spacing: decimated to the spacing first
+        sample_mesh = source_mesh(mesh, faces_for_spacing(mesh.area, spacing))
+        samples = surface_samples(sample_mesh, spacing)
+        if sample_mesh is mesh:
+            uv = (samples.bary.unsqueeze(-1).to(atlas.face_uvs.dtype) * atlas.face_uvs[samples.face_id]).sum(1)
+        else:  # samples on the decimated copy read the atlas at their closest points on the atlas's own mesh
+            n = samples.position.shape[0]
+            as_image = samples.position.T.reshape(1, 3, 1, n)
+            covered = torch.ones(1, 1, 1, n, dtype=torch.bool, device=as_image.device)
+            uv = transferred_uv(SurfaceLocator(mesh), atlas.face_uvs, as_image, covered)[0, :, 0].T
+        surface = SurfaceLocal(uv, samples.area.to(mesh.vertices.dtype), atlas.valid_mask, mat, module.local_weight)
+        position = samples.position
+        stats.update(local_spacing_mm=spacing, local_samples=int(samples.area.shape[0]))
+    stats["t_precompute_s"] = time.perf_counter() - t0
+    return ChangScene(mesh, atlas, module, stats, surface, position)
 
 
 class IcdfRenderer(Renderer):
@@ -210,7 +256,11 @@ class IcdfRenderer(Renderer):
         u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
         mask = gbuf.mask[0, 0]
         receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
-        if self.hybrid:
+        plan = self._local_plan(camera, gbuf) if self.hybrid and self.built.local is not None else None
+        local_used = getattr(self, "_local_reason", "atlas") if self.hybrid else None
+        if plan is not None:
+            b = self.module.global_everywhere(e, u, receivers) + self._surface_local(e, gbuf, plan)[None]
+        elif self.hybrid:
             uv = self.view.uv(camera, gbuf.position, gbuf.mask)
             rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
             b = self.module(e, u, receivers, rec_uv)
@@ -229,23 +279,34 @@ class IcdfRenderer(Renderer):
         stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=time.perf_counter() - t2,
                      atlas_resolution=self.atlas.resolution, samples=k["samples"],
                      receivers=int(receivers.shape[1]), sobol=k["sobol"], seed=k["seed"])
+        if self.hybrid:
+            stats["local_term"] = local_used
+            if plan is not None:
+                stats.update(local_stride=plan[0], local_pairs=int(plan[2][0].numel()),
+                             local_exact=getattr(self, "_local_exact", 0))
         return RenderResult(radiance, radiosity, gbuf.mask, stats)
 
 
 class HybridRenderer(IcdfRenderer):
     """Chang et al.'s hybrid: an ``rings x per_ring + 1`` local filter plus ``samples`` global samples per frame.
 
-    Knobs: those of :class:`IcdfRenderer`, and ``rings``, ``per_ring`` (the filter pattern), ``c`` (the split's
-    importance bound, mm^-1), ``k`` (the blend width of W_l, W_g), ``local_eps`` (the local term's truncation),
-    ``max_reach`` (the split is turned off on objects whose bounding radius is below local bound / max_reach; see
-    :func:`build_hybrid`). ``stats`` also hold the split radius ``r_p_mm``, the local bound ``local_bound_mm`` and
-    ``split`` (on or off, and why).
+    Knobs: those of :class:`IcdfRenderer`, and ``local`` (``"surface"``: the local term gathered in 3-D from surface
+    samples, default; ``"atlas"``: Chang's filter of ``rings`` x ``per_ring`` + 1 atlas lookups; see
+    :func:`build_hybrid`), ``local_spacing_mm`` (the surface samples' spacing; None: the reference's),
+    ``max_local_pairs`` (the local term is evaluated on a pixel grid coarse enough that its receivers have at most
+    this many sample pairs within the local bound, and interpolated between; a view that would need a stride above
+    8 takes Chang's atlas filter instead, ``stats["local_term"]`` says so; about 36 bytes a pair), ``c`` (the split's
+    importance bound, mm^-1), ``k`` (the blend width of W_l, W_g), ``local_eps`` (the local term's truncation; None:
+    1e-2 for the surface, 1e-3 for the atlas filter), ``max_reach`` (the split is turned off on objects whose
+    bounding radius is below local bound / max_reach; see :func:`build_hybrid`). ``stats`` also hold the split
+    radius ``r_p_mm``, the local bound ``local_bound_mm`` and ``split`` (on or off, and why).
     """
 
     method = "hybrid"
     hybrid = True
-    defaults: ClassVar[dict] = dict(IcdfRenderer.defaults, rings=8, per_ring=16, c=0.1, k=1.5, local_eps=1e-3,
-                                    max_reach=0.8)
+    defaults: ClassVar[dict] = dict(IcdfRenderer.defaults, rings=8, per_ring=16, c=0.1, k=1.5, local_eps=None,
+                                    max_reach=0.8, local="surface", local_spacing_mm=None,
+                                    max_local_pairs=8_000_000)
 
     def _build(self) -> None:
         k = self.knobs
@@ -253,9 +314,71 @@ class HybridRenderer(IcdfRenderer):
         self.built = build_hybrid(self.source_mesh, self.material, atlas_resolution=k["atlas_resolution"],
                                   rings=k["rings"], per_ring=k["per_ring"], c=k["c"], k=k["k"],
                                   local_eps=k["local_eps"], levels=k["levels"], max_pairs=k["max_pairs"],
-                                  max_reach=k["max_reach"], progress=self.progress)
+                                  max_reach=k["max_reach"], local=k["local"], local_spacing_mm=k["local_spacing_mm"],
+                                  progress=self.progress)
         self.atlas, self.module = self.built.atlas, self.built.module
         self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
+        self._plan_cache: tuple | None = None
+
+    def _local_plan(self, camera: Camera, gbuf) -> tuple | None:
+        """``(stride, CoarseReceivers, pairs)`` of the surface local term for this view (cached while it stays).
+
+        The local term is evaluated at every ``stride``-th pixel and interpolated where the surface is smooth
+        (:func:`~torchsss.pipelines.coarse.coarse_receivers`; edges, creases and, per frame, terminators sharper
+        than the grid are evaluated exactly), with the smallest stride whose receivers have at most
+        ``max_local_pairs`` sample pairs within the local bound (estimated on 256 of them). None when even a
+        stride of 8 would not fit: the view then takes Chang's atlas filter, and the stats say why.
+        """
+        cache = getattr(self, "_plan_cache", None)
+        if cache is not None and cache[0] == camera:
+            return cache[1]
+        mask = gbuf.mask[0, 0]
+        pos = gbuf.position[0].permute(1, 2, 0)
+        nrm = gbuf.normal[0].permute(1, 2, 0)
+        samples = self.built.sample_position.to(pos.device)
+        budget = self.knobs["max_local_pairs"]
+        covered = pos[mask]
+        per = 0.0
+        if covered.shape[0]:
+            pick = covered[torch.randperm(covered.shape[0], generator=torch.Generator().manual_seed(0))[:256]]
+            from scipy.spatial import cKDTree
+
+            counts = cKDTree(samples.detach().double().cpu().numpy()).query_ball_point(
+                pick.detach().double().cpu().numpy(), self.module.bound, return_length=True)
+            per = float(counts.mean())
+        strides = (1, 2, 3, 4, 6, 8)
+        first = next((i for i, st in enumerate(strides) if covered.shape[0] / st**2 * per <= budget), len(strides))
+        result = None
+        self._local_reason = (f"atlas (fallback: about {covered.shape[0] * per / 64:.3g} sample pairs within the "
+                              f"local bound even at stride 8, over max_local_pairs={budget})")
+        for stride in strides[first:]:  # the estimate misses the edges evaluated exactly: the count decides
+            plan = coarse_receivers(pos, nrm, mask, stride)
+            try:
+                pairs = ball_pairs(pos.reshape(-1, 3)[plan.evaluate], samples, self.module.bound,
+                                   max_pairs=int(1.5 * budget))
+            except ValueError as err:
+                self._local_reason = f"atlas (fallback: at stride {stride}: {err})"
+                continue
+            result, self._local_reason = (stride, plan, pairs), "surface"
+            break
+        self._plan_cache = (camera, result)
+        return result
+
+    def _surface_local(self, irradiance: Tensor, gbuf, plan: tuple) -> Tensor:
+        """:math:`(M, C)` the surface local term at the covered pixels (row-major), from the view's plan."""
+        stride, coarse, (rows, cols, dist) = plan
+        local = self.built.local
+        b_eval = local(irradiance, rows, cols, dist.to(irradiance.dtype), int(coarse.evaluate.numel()))[0]
+        h, w = gbuf.mask.shape[-2:]
+        exact = coarse.refine(b_eval, self.knobs.get("refine", 0.2)) if stride > 1 else coarse.fill[:0]
+        b_exact = None
+        if exact.numel():
+            pos = gbuf.position[0].permute(1, 2, 0).reshape(-1, 3)[coarse.fill[exact]]
+            r2, c2, d2 = ball_pairs(pos, self.built.sample_position.to(pos.device), self.module.bound)
+            b_exact = local(irradiance, r2, c2, d2.to(irradiance.dtype), int(pos.shape[0]))[0]
+        self._local_exact = int(exact.numel())
+        image = coarse.scatter(b_eval, h, w, exact, b_exact)  # (H, W, C)
+        return image[gbuf.mask[0, 0]]
 
 
 def _frame(cls: type[IcdfRenderer], mesh: Mesh, material, lights, camera, *, samples: int, dtype: torch.dtype,
