@@ -172,6 +172,8 @@ def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
             log(f"  {name} {method}: FAILED {type(err).__name__}: {err}")
             continue
         err = image_error(out, ref)
+        if out.stats.get("local_term"):  # the hybrid's local term: over the surface, or the atlas fallback (why)
+            note = f"{note}; local term: {out.stats['local_term'][:60]}"
         rec = {"benchmark": "scene", "device": device, "scene": name, "faces": faces, "resolution": res,
                "method": method, "knobs": json.dumps(knobs, sort_keys=True), "decimate": decimate,
                "setup_s": setup, "cold_frame_s": cold, "frame_s": warm,

@@ -37,7 +37,9 @@ from torchsss.geometry import (
 )
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer
+from torchsss.geometry.neighbours import ball_pairs
 from torchsss.geometry.procedural import plane
+from torchsss.geometry.sampling import surface_samples
 from torchsss.modules import (
     CausticMap,
     DipoleMaterial,
@@ -51,7 +53,9 @@ from torchsss.modules import (
     LocalResponse,
     NewtonRaphsonSearch,
     SplatTranslucency,
+    SurfaceLocal,
 )
+from torchsss.modules.chang import ChangLocalProfile
 from torchsss.physics.materials import preset
 
 __all__ = ["EXPORTABLE", "MATERIAL_PRESETS", "ExportCase", "export_case", "material_inputs"]
@@ -362,6 +366,31 @@ def _hybrid_case() -> ExportCase:
     )
 
 
+def _surface_local_case() -> ExportCase:
+    atlas = _chang_atlas()
+    mat = DipoleMaterial.from_preset("skin1")
+    smp = surface_samples(sphere(6.0, 1), 1.0)  # the atlas's mesh
+    uv = (smp.bary.unsqueeze(-1) * atlas.face_uvs[smp.face_id]).sum(1)
+    module = SurfaceLocal(uv, smp.area, atlas.valid_mask, mat, ChangLocalProfile(1.2, 1.5, 3.0))
+
+    def args(b, m, seed):
+        g = _gen(seed)
+        rec = smp.position[torch.randperm(smp.position.shape[0], generator=g)[:m]] * 1.01
+        rows, cols, dist = ball_pairs(rec, smp.position, 3.0)
+        return torch.rand(b, 3, *atlas.shape, generator=g) * atlas.valid_mask, rows, cols, dist, rec
+
+    p, m = Dim("P"), Dim("M")
+    return ExportCase(
+        module=module,
+        example_args=args(2, 40, 0),
+        test_args=args(3, 57, 1),
+        dynamic_shapes=({0: Dim("B")}, {0: p}, {0: p}, {0: p}, {0: m}),
+        description="SurfaceLocal (the hybrid's local term gathered over surface samples, skin1, 32x32 sphere atlas): "
+                    "irradiance (B, 3, 32, 32), pairs rows/cols/distance (P,), receivers (M, 3) mm -> local radiosity "
+                    "(B, M, 3)",
+    )
+
+
 def _icdf_sampler_case() -> ExportCase:
     def args(b, n, h, w, seed):
         g = _gen(seed)
@@ -480,6 +509,7 @@ EXPORTABLE: dict[str, Callable[[], ExportCase]] = {
     "icdf": _icdf_case,
     "icdf_materials": _icdf_materials_case,
     "hybrid": _hybrid_case,
+    "hybrid_surface_local": _surface_local_case,
     "newton": _newton_case,
     "caustic_map": _caustic_case,
 }

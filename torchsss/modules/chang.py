@@ -357,7 +357,9 @@ class SurfaceLocal(nn.Module):
         translucency_mask: optional :math:`(1, 1, H, W)` atlas (0: the texel sends no subsurface light).
 
     Shapes:
-        ``forward(irradiance (B, C, H, W), rows (P,), cols (P,), distance (P,), receivers: int)`` -> :math:`(B, M, C)`.
+        ``forward(irradiance (B, C, H, W), rows (P,), cols (P,), distance (P,), receivers)`` -> :math:`(B, M, C)`;
+        ``receivers`` is M, or the :math:`(M, 3)` receiver positions (only their count is used: the form that
+        keeps M dynamic in an exported graph).
 
     Examples:
         >>> from torchsss.modules import DipoleMaterial
@@ -420,7 +422,8 @@ class SurfaceLocal(nn.Module):
         d = distance.unsqueeze(-1)
         return self.area[cols].unsqueeze(-1).to(d.dtype) * self.material(d) * self.weight(d)
 
-    def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor, receivers: int) -> Tensor:
+    def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor,
+                receivers: int | Tensor) -> Tensor:
         """:math:`B_l` at ``receivers`` points, :math:`(B, M, C)` (see the class docstring).
 
         Raises:
@@ -432,14 +435,17 @@ class SurfaceLocal(nn.Module):
         p = check_shape(distance, "distance", "P")["P"]
         check_shape(rows, "rows", "P", P=p)
         check_shape(cols, "cols", "P", P=p)
-        receivers = check_int(receivers, "receivers", 0)
+        if isinstance(receivers, Tensor):
+            receivers = check_shape(receivers, "receivers", "M,3")["M"]
+        else:
+            receivers = check_int(receivers, "receivers", 0)
         es = self.sample_irradiance(irradiance)  # (B, N, C)
         key = material_key(self.material)
         w = self._cache.get(None if key is None else (*key, distance.data_ptr(), p),
                             lambda: self.pair_weights(cols, distance))
         out = es.new_zeros(es.shape[0], receivers, es.shape[-1])
         if torch.is_grad_enabled() or is_tracing():
-            return out.index_add(1, rows, w.to(es.dtype).unsqueeze(0) * es[:, cols])
+            return out.index_add(1, rows, w.to(es.dtype).unsqueeze(0) * es.index_select(1, cols))
         block = 1 << 22  # (B, 4M, C) temporaries at a time: memory stays bounded whatever the pair count
         for lo in range(0, p, block):
             hi = min(p, lo + block)

@@ -257,7 +257,10 @@ class IcdfRenderer(Renderer):
         mask = gbuf.mask[0, 0]
         receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
         plan = self._local_plan(camera, gbuf) if self.hybrid and self.built.local is not None else None
-        local_used = getattr(self, "_local_reason", "atlas") if self.hybrid else None
+        local_used = None
+        if self.hybrid:
+            local_used = getattr(self, "_local_reason", "atlas") if self.built.local is not None else \
+                ("none (the split is off: everything is sampled)" if self.module.bound <= 0 else "atlas")
         if plan is not None:
             b = self.module.global_everywhere(e, u, receivers) + self._surface_local(e, gbuf, plan)[None]
         elif self.hybrid:
@@ -352,7 +355,8 @@ class HybridRenderer(IcdfRenderer):
         self._local_reason = (f"atlas (fallback: about {covered.shape[0] * per / 64:.3g} sample pairs within the "
                               f"local bound even at stride 8, over max_local_pairs={budget})")
         for stride in strides[first:]:  # the estimate misses the edges evaluated exactly: the count decides
-            plan = coarse_receivers(pos, nrm, mask, stride)
+            # a 3-D gather is continuous across creases: only gaps (silhouettes, other surfaces) are edges here
+            plan = coarse_receivers(pos, nrm, mask, stride, max_angle_deg=180.0)
             try:
                 pairs = ball_pairs(pos.reshape(-1, 3)[plan.evaluate], samples, self.module.bound,
                                    max_pairs=int(1.5 * budget))
