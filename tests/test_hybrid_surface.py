@@ -147,8 +147,8 @@ def test_surface_local_gradcheck_and_errors():
 
 def test_hybrid_renderer_plans_the_local_grid_and_falls_back():
     """``local="surface"``: the local term at every pixel when its pairs fit ``max_local_pairs``; on a coarser pixel
-    grid (interpolated where smooth, exact at edges) when they do not, within 1% of the full evaluation; and Chang's
-    atlas filter, said in the stats, when even stride 8 would not fit."""
+    grid (interpolated where smooth, exact at edges) when they do not, within 1% of the full evaluation; a narrower
+    split (said in the stats) when even stride 8 would not fit; ``local="atlas"``: Chang's filter."""
     from torchsss.geometry import Camera, PointLight
     from torchsss.pipelines import build
 
@@ -165,8 +165,14 @@ def test_hybrid_renderer_plans_the_local_grid_and_falls_back():
     m = full.mask.expand_as(full.radiance)
     rel = float((coarse.radiance - full.radiance)[m].norm() / full.radiance[m].norm())
     assert rel < 0.01, rel
-    fallback = build("hybrid", mesh, "skin1", atlas_resolution=256, samples=1024, max_local_pairs=10)
-    out = fallback.render(lights, camera)
-    assert out.stats["local_term"].startswith("atlas (fallback") and "local_stride" not in out.stats
+    # nothing fits: the split narrows (c doubles) until it does; for skin1 at c = 0.2 it narrows away (R_p = 0) and
+    # every source is sampled: noisier, still without seams
+    narrow = build("hybrid", mesh, "skin1", atlas_resolution=256, samples=1024, max_local_pairs=10)
+    out = narrow.render(lights, camera)
+    assert out.stats["local_term"].startswith("none (split narrowed away at c = 0.2") and out.stats["local_c"] == 0.2
+    rel = float((out.radiance - full.radiance)[m].norm() / full.radiance[m].norm())
+    assert bool(torch.isfinite(out.radiance).all()) and rel < 0.1, rel
+    atlas = build("hybrid", mesh, "skin1", atlas_resolution=256, samples=1024, local="atlas").render(lights, camera)
+    assert atlas.stats["local_term"] == "atlas" and "local_stride" not in atlas.stats
     with pytest.raises(ValueError, match="local: expected 'surface' or 'atlas'"):
         build("hybrid", mesh, "skin1", atlas_resolution=64, local="texture")

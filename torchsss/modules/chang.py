@@ -41,6 +41,7 @@ with its sign correction of the paper's :math:`W_l`). The global part is the est
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -404,6 +405,16 @@ class SurfaceLocal(nn.Module):
             check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
         self._cache = ValueCache()
+
+    def with_weight(self, weight: ChangLocalProfile) -> SurfaceLocal:
+        """The same samples and atlas with another local weight (a narrower split): buffers are shared."""
+        if not isinstance(weight, ChangLocalProfile):
+            raise TypeError(f"weight: expected a ChangLocalProfile, got {type(weight).__name__}")
+        other = copy.copy(self)
+        other._modules = dict(self._modules)
+        other._modules["weight"] = weight
+        other._cache = ValueCache()
+        return other
 
     def sample_irradiance(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` atlas -> :math:`(B, N, C)` irradiance at the samples (valid texels only)."""

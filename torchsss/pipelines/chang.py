@@ -34,6 +34,7 @@ from torchsss.geometry.transfer import SurfaceLocator, transferred_uv
 from torchsss.modules.chang import HybridTranslucency, ImportanceSampledTranslucency, SurfaceLocal
 from torchsss.modules.material import material_module
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS
+from torchsss.physics.budget import chang_rp
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import AtlasView, source_mesh
@@ -262,7 +263,9 @@ class IcdfRenderer(Renderer):
             local_used = getattr(self, "_local_reason", "atlas") if self.built.local is not None else \
                 ("none (the split is off: everything is sampled)" if self.module.bound <= 0 else "atlas")
         if plan is not None:
-            b = self.module.global_everywhere(e, u, receivers) + self._surface_local(e, gbuf, plan)[None]
+            b = plan[3].global_everywhere(e, u, receivers)
+            if plan[0] > 0:
+                b = b + self._surface_local(e, gbuf, plan)[None]
         elif self.hybrid:
             uv = self.view.uv(camera, gbuf.position, gbuf.mask)
             rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
@@ -285,8 +288,9 @@ class IcdfRenderer(Renderer):
         if self.hybrid:
             stats["local_term"] = local_used
             if plan is not None:
-                stats.update(local_stride=plan[0], local_pairs=int(plan[2][0].numel()),
-                             local_exact=getattr(self, "_local_exact", 0))
+                stats.update(local_stride=plan[0], local_pairs=int(plan[2][0].numel()) if plan[2] else 0,
+                             local_exact=getattr(self, "_local_exact", 0), local_c=plan[5],
+                             local_bound_mm=plan[3].bound, r_p_mm=plan[3].r_p)
         return RenderResult(radiance, radiosity, gbuf.mask, stats)
 
 
@@ -324,13 +328,17 @@ class HybridRenderer(IcdfRenderer):
         self._plan_cache: tuple | None = None
 
     def _local_plan(self, camera: Camera, gbuf) -> tuple | None:
-        """``(stride, CoarseReceivers, pairs)`` of the surface local term for this view (cached while it stays).
+        """The surface local term's plan for this view: ``(stride, CoarseReceivers, pairs, module, local, c)``.
 
+        Cached while the view stays.
         The local term is evaluated at every ``stride``-th pixel and interpolated where the surface is smooth
-        (:func:`~torchsss.pipelines.coarse.coarse_receivers`; edges, creases and, per frame, terminators sharper
-        than the grid are evaluated exactly), with the smallest stride whose receivers have at most
-        ``max_local_pairs`` sample pairs within the local bound (estimated on 256 of them). None when even a
-        stride of 8 would not fit: the view then takes Chang's atlas filter, and the stats say why.
+        (:func:`~torchsss.pipelines.coarse.coarse_receivers`; gaps and, per frame, terminators sharper than the grid
+        are evaluated exactly), with the smallest stride whose receivers have at most ``max_local_pairs`` sample
+        pairs within the local bound (estimated on 256 of them, then counted). Where even a stride of 8 does not
+        fit, the split is narrowed: Chang's importance bound ``c`` doubles (up to 16x), which moves :math:`R_p` and
+        the local bound inwards and more of the near field to the sampled global term, noisier but, with the
+        local term over the surface, without seams. None when nothing fits: the view takes Chang's atlas filter,
+        and the stats say why.
         """
         cache = getattr(self, "_plan_cache", None)
         if cache is not None and cache[0] == camera:
@@ -341,44 +349,77 @@ class HybridRenderer(IcdfRenderer):
         samples = self.built.sample_position.to(pos.device)
         budget = self.knobs["max_local_pairs"]
         covered = pos[mask]
-        per = 0.0
-        if covered.shape[0]:
-            pick = covered[torch.randperm(covered.shape[0], generator=torch.Generator().manual_seed(0))[:256]]
-            from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree
 
-            counts = cKDTree(samples.detach().double().cpu().numpy()).query_ball_point(
-                pick.detach().double().cpu().numpy(), self.module.bound, return_length=True)
-            per = float(counts.mean())
+        tree = cKDTree(samples.detach().double().cpu().numpy())
+        pick = covered[torch.randperm(covered.shape[0], generator=torch.Generator().manual_seed(0))[:256]]
         strides = (1, 2, 3, 4, 6, 8)
-        first = next((i for i, st in enumerate(strides) if covered.shape[0] / st**2 * per <= budget), len(strides))
         result = None
-        self._local_reason = (f"atlas (fallback: about {covered.shape[0] * per / 64:.3g} sample pairs within the "
-                              f"local bound even at stride 8, over max_local_pairs={budget})")
-        for stride in strides[first:]:  # the estimate misses the edges evaluated exactly: the count decides
-            # a 3-D gather is continuous across creases: only gaps (silhouettes, other surfaces) are edges here
-            plan = coarse_receivers(pos, nrm, mask, stride, max_angle_deg=180.0)
-            try:
-                pairs = ball_pairs(pos.reshape(-1, 3)[plan.evaluate], samples, self.module.bound,
-                                   max_pairs=int(1.5 * budget))
-            except ValueError as err:
-                self._local_reason = f"atlas (fallback: at stride {stride}: {err})"
-                continue
-            result, self._local_reason = (stride, plan, pairs), "surface"
-            break
+        self._local_reason = "atlas (fallback: no covered pixel)"
+        for scale in (1, 2, 4, 8, 16):
+            c = self.knobs["c"] * scale
+            module, local = self._split(c)
+            if module.bound <= 0:  # the split narrowed away: everything sampled, still no seam
+                result = (0, None, None, module, None, c)
+                self._local_reason = f"none (split narrowed away at c = {c:g}: every source sampled)"
+                break
+            per = float(tree.query_ball_point(pick.detach().double().cpu().numpy(), module.bound,
+                                              return_length=True).mean()) if pick.shape[0] else 0.0
+            first = next((i for i, st in enumerate(strides) if covered.shape[0] / st**2 * per <= budget),
+                         len(strides))
+            for stride in strides[first:]:  # the estimate misses the edges evaluated exactly: the count decides
+                # a 3-D gather is continuous across creases: only gaps (silhouettes, other surfaces) are edges here
+                plan = coarse_receivers(pos, nrm, mask, stride, max_angle_deg=180.0)
+                try:
+                    pairs = ball_pairs(pos.reshape(-1, 3)[plan.evaluate], samples, module.bound,
+                                       max_pairs=int(1.5 * budget))
+                except ValueError as err:
+                    self._local_reason = f"atlas (fallback: at c = {c:g}, stride {stride}: {err})"
+                    continue
+                result = (stride, plan, pairs, module, local, c)
+                self._local_reason = "surface" if scale == 1 else \
+                    f"surface (split narrowed to c = {c:g}: local bound {module.bound:.2f} mm, to fit the pairs)"
+                break
+            if result is not None:
+                break
         self._plan_cache = (camera, result)
         return result
 
+    def _split(self, c: float) -> tuple:
+        """The split at importance bound ``c``: ``(HybridTranslucency, SurfaceLocal)`` (the built ones at the knob)."""
+        if c == self.knobs["c"]:
+            return self.module, self.built.local
+        splits = self.__dict__.setdefault("_splits", {})
+        if c not in splits:
+            k = self.knobs
+            mat = self.material
+            eps = self.built.stats["local_eps"]
+            if hasattr(mat, "sigma_s_prime"):
+                with torch.no_grad():
+                    r_p = float(chang_rp(mat.sigma_a.detach(), mat.sigma_s_prime.detach(), mat.eta.detach(),
+                                         c=c).amax())
+            else:
+                r_p = profile_rp(mat, c)
+            # the weight's tail shrinks with R_p (at most 2 R_p past it; at Chang's K it is ln(0.5/eps)/K, 2.6 mm
+            # at eps 1e-2, which would keep the bound wide however small R_p gets)
+            blend = max(k["k"], math.log(0.5 / eps) / (2.0 * r_p)) if r_p > 0 else k["k"]
+            module = HybridTranslucency.from_atlas(
+                self.atlas, mat, r_p=r_p, k=blend, rings=k["rings"], per_ring=k["per_ring"], local_eps=eps,
+                levels=k["levels"], max_pairs=k["max_pairs"])
+            local = self.built.local.with_weight(module.local_weight) if module.bound > 0 else None
+            splits[c] = (module, local)
+        return splits[c]
+
     def _surface_local(self, irradiance: Tensor, gbuf, plan: tuple) -> Tensor:
         """:math:`(M, C)` the surface local term at the covered pixels (row-major), from the view's plan."""
-        stride, coarse, (rows, cols, dist) = plan
-        local = self.built.local
+        stride, coarse, (rows, cols, dist), module, local, _ = plan
         b_eval = local(irradiance, rows, cols, dist.to(irradiance.dtype), int(coarse.evaluate.numel()))[0]
         h, w = gbuf.mask.shape[-2:]
         exact = coarse.refine(b_eval, self.knobs.get("refine", 0.2)) if stride > 1 else coarse.fill[:0]
         b_exact = None
         if exact.numel():
             pos = gbuf.position[0].permute(1, 2, 0).reshape(-1, 3)[coarse.fill[exact]]
-            r2, c2, d2 = ball_pairs(pos, self.built.sample_position.to(pos.device), self.module.bound)
+            r2, c2, d2 = ball_pairs(pos, self.built.sample_position.to(pos.device), module.bound)
             b_exact = local(irradiance, r2, c2, d2.to(irradiance.dtype), int(pos.shape[0]))[0]
         self._local_exact = int(exact.numel())
         image = coarse.scatter(b_eval, h, w, exact, b_exact)  # (H, W, C)
