@@ -302,7 +302,7 @@ class HybridRenderer(IcdfRenderer):
     :func:`build_hybrid`), ``local_spacing_mm`` (the surface samples' spacing; None: the reference's),
     ``max_local_pairs`` (the local term is evaluated on a pixel grid coarse enough that its receivers have at most
     this many sample pairs within the local bound, and interpolated between; a view that would need a stride above
-    8 takes Chang's atlas filter instead, ``stats["local_term"]`` says so; about 36 bytes a pair), ``c`` (the split's
+    8 narrows the split instead, ``stats["local_term"]`` says so; about 36 bytes a pair), ``c`` (the split's
     importance bound, mm^-1), ``k`` (the blend width of W_l, W_g), ``local_eps`` (the local term's truncation; None:
     1e-2 for the surface, 1e-3 for the atlas filter), ``max_reach`` (the split is turned off on objects whose
     bounding radius is below local bound / max_reach; see :func:`build_hybrid`). ``stats`` also hold the split
