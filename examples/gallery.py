@@ -2,7 +2,9 @@
 
 Each translucent method is built with the knobs ``python -m torchsss render default --method M`` uses by default
 (the planner's choice for that method alone at ``--tolerance``, :func:`torchsss.plan.plan_method`), renders one
-frame and is compared with the reference (its default knobs, the full mesh) over the pixels both cover. All images
+frame at the render command's default pixel integration (``--spp``, :data:`torchsss.cli.DEFAULT_SPP` sub-pixels,
+upsampled) and is compared with the reference (its default knobs, the full mesh, the same sub-pixels) over the
+pixels both cover. All images
 share the reference's exposure, so brightness differences are real. Writes ``OUT/<method>.png``, an error image
 ``OUT/<method>_error.png`` (|L - L_ref| / max L_ref, x10, red), ``OUT/caustics.png`` and ``OUT/gallery.md`` (the
 table the README embeds).
@@ -22,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from torchsss.cli import DEFAULT_SPP
 from torchsss.cli import render as cli_render
 from torchsss.io import auto_exposure, tonemap, write_png
 from torchsss.pipelines.build import build
@@ -33,13 +36,13 @@ METHODS = ("splat", "icdf", "hybrid", "lensch")
 CAUSTICS = Path(__file__).resolve().parent / "scenes" / "glass_sphere.json"
 
 
-def _render(method: str, scene, knobs: dict):
+def _render(method: str, scene, knobs: dict, spp: int):
     mesh = scene.load_mesh()
     t0 = time.perf_counter()
     renderer = build(method, mesh, scene.material, **knobs)
     setup = time.perf_counter() - t0
     t1 = time.perf_counter()
-    result = renderer.render(list(scene.lights), scene.camera)
+    result = renderer.render(list(scene.lights), scene.camera, spp=spp, subpixel="upsample")
     return result, setup, time.perf_counter() - t1
 
 
@@ -50,12 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tolerance", type=float, default=0.02)
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS)
     parser.add_argument("--no-caustics", action="store_true")
+    parser.add_argument("--spp", type=int, default=DEFAULT_SPP, help=f"sub-pixels, upsampled (default {DEFAULT_SPP})")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(default_scene_path())
     scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=args.resolution,
                                                                   height=args.resolution))
-    ref, ref_setup, ref_frame = _render("reference", scene, {})
+    ref, ref_setup, ref_frame = _render("reference", scene, {}, args.spp)
     image = ref.radiance[0].detach().float()
     exposure = auto_exposure(image, ref.mask[0])
     write_png(args.out / "reference.png", tonemap(image, exposure))
@@ -65,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     print(rows[-1], flush=True)
     for method in args.methods:
         knobs, _, note = plan_method(scene, method, args.tolerance)
-        out, setup, frame = _render(method, scene, knobs)
+        out, setup, frame = _render(method, scene, knobs, args.spp)
         err = image_error(out, ref)
         img = out.radiance[0].detach().float()
         write_png(args.out / f"{method}.png", tonemap(img, exposure))
@@ -86,9 +90,10 @@ def main(argv: list[str] | None = None) -> int:
         print(rows[-1], flush=True)
     table = ["| method | knobs (planned at the tolerance) | setup | frame | rel. RMSE vs reference | image | "
              "error x10 |", "|---|---|---:|---:|---:|---|---|", *rows]
-    (args.out / "gallery.md").write_text(
-        f"Default scene at {args.resolution}x{args.resolution}, tolerance {args.tolerance:.0%}, one frame each "
-        f"(2-core CPU; `python examples/gallery.py --out {args.out}`).\n\n" + "\n".join(table) + "\n")
+    head = (f"Default scene at {args.resolution}x{args.resolution}, {args.spp} sub-pixels per pixel (upsampled), "
+            f"tolerance {args.tolerance:.0%}, one frame each (2-core CPU; `python examples/gallery.py --out "
+            f"{args.out}`).")
+    (args.out / "gallery.md").write_text(head + "\n\n" + "\n".join(table) + "\n")
     print(f"wrote {args.out / 'gallery.md'}")
     return 0
 

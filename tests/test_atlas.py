@@ -475,3 +475,18 @@ def test_bunny_1024(shared_dir):
     assert abs(float((a.area.double() * a.chart_mask).sum()) / bunny.area - 1.0) < 1e-6
     assert torch.equal(a.valid_mask, _dilate(a.chart_mask, a.padding))
     assert int(_coverage_count(a.face_uvs, 1024, 1024).max()) == 1
+
+
+def test_xatlas_in_a_forked_child_matches_in_process(monkeypatch):
+    """xatlas runs in a forked child (its destructor can hang on a lost thread wake-up; the child never runs it):
+    the same charts as in this process."""
+    import os
+
+    if not hasattr(os, "fork"):
+        pytest.skip("no os.fork on this platform: xatlas runs in-process")
+    mesh = torus(5.0, 1.8, 24, 12)
+    forked = build_atlas(mesh, 128)
+    monkeypatch.setenv("TORCHSSS_XATLAS_FORK", "0")
+    local = build_atlas(mesh, 128)
+    assert torch.equal(forked.face_uvs, local.face_uvs)
+    assert torch.equal(forked.valid_mask, local.valid_mask)

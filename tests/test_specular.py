@@ -63,7 +63,8 @@ def test_bad_roughness():
 
 
 def test_render_flag_adds_highlights(tmp_path):
-    base = ["render", "default", "--resolution", "20x20", "--spacing", "3.0", "--no-progress"]
+    # one sample per pixel for both: --specular renders 1 spp by default (upsampling forms B's radiance alone)
+    base = ["render", "default", "--resolution", "20x20", "--spacing", "3.0", "--no-progress", "--spp", "1"]
     assert main([*base, "--out", str(tmp_path / "a.exr")]) == 0
     assert main([*base, "--out", str(tmp_path / "b.exr"), "--specular"]) == 0
     a, b = read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr")

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from torchsss.cli import main
+from torchsss.cli import DEFAULT_SPP, main
 from torchsss.geometry import Camera, PointLight, sphere
 from torchsss.io import auto_exposure, tonemap
 from torchsss.pipelines import build
@@ -83,7 +83,10 @@ def test_cli_spp_and_exposure(tmp_path):
     assert main([*args, "--spp", "4"]) == 0
     plain = json.loads(out.with_suffix(".json").read_text())
     assert plain["exposure_ev"] == 0.0 and summary["exposure"] == pytest.approx(2 * plain["exposure"], rel=1e-6)
-    assert main(args) == 0
+    assert main([*args, "--spp", "1"]) == 0
     assert json.loads(out.with_suffix(".json").read_text())["spp"] == 1
+    assert main(args) == 0  # the default: the pixel integral, upsampled
+    default = json.loads(out.with_suffix(".json").read_text())
+    assert (default["spp"], default["subpixel"]) == (DEFAULT_SPP, "upsample")
     with pytest.raises(SystemExit):
         main([*args, "--spp", "3"])

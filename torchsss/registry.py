@@ -141,11 +141,12 @@ def orbit_lights(lights: Sequence[Light], frame: int, frames: int, *, centre: Se
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32, frames: int = 1,
-                 progress: bool = False, spp: int = 1, **knobs) -> RenderResult:
+                 progress: bool = False, spp: int = 1, subpixel: str = "exact", **knobs) -> RenderResult:
     """Render ``scene`` with ``method``: build once, then ``frames`` frames with the lights orbiting the object.
 
     ``spp`` (a square) renders each frame on a finer pixel grid and box-filters it back
-    (:meth:`~torchsss.pipelines.Renderer.render`): the pixel-integrated image.
+    (:meth:`~torchsss.pipelines.Renderer.render`, ``subpixel`` as there; several objects: ``"exact"`` only): the
+    pixel-integrated image.
 
     Returns the first frame's result (the scene's own lighting); its ``stats`` hold ``setup_s``, ``frame_s`` (a list
     with one time per frame), ``frame_median_s``, ``fps`` and the ``knobs``.
@@ -162,6 +163,8 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise ValueError(f"frames: expected an int >= 1, got {frames!r}")
     fine, factor = supersample_camera(scene.camera, spp)
+    if len(scene.objects) > 1 and subpixel != "exact" and factor > 1:
+        raise ValueError(f"subpixel: expected 'exact' for a scene of several objects, got {subpixel!r}")
     first: RenderResult | None = None
     times: list[float] = []
     if len(scene.objects) > 1:
@@ -183,7 +186,7 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
         centre = tuple(float(v) for v in (mesh.vertices.amax(0) + mesh.vertices.amin(0)) / 2)
         for i in range(frames):
             res = renderer.render(orbit_lights(scene.lights, i, frames, centre=centre, axis=scene.camera.up),
-                                  scene.camera, spp=spp)
+                                  scene.camera, spp=spp, subpixel=subpixel)
             times.append(res.stats["frame_s"])
             first = first or res
         assert first is not None

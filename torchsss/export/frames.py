@@ -124,7 +124,7 @@ def frame_inputs(renderer, lights, camera) -> tuple[nn.Module, dict[str, Tensor]
         ValueError: a method other than ``splat``/``lensch``, a profile other than the dipole, per-vertex modifiers
             or ``specular`` (not in the frame graph), a float64 renderer.
     """
-    from torchsss.geometry.gbuffer import camera_gbuffer
+    from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 
     method = getattr(renderer, "method", None)
     if method not in FRAME_METHODS:
@@ -136,7 +136,7 @@ def frame_inputs(renderer, lights, camera) -> tuple[nn.Module, dict[str, Tensor]
     mesh, eta = renderer.mesh, renderer.eta
     mat = _material_values(renderer.material)
     gbuf = camera_gbuffer(mesh, camera)
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+    cos_o = view_cosine(gbuf)
     meta = {"method": method, "width": camera.width, "height": camera.height}
     with torch.no_grad():
         if method == "splat":

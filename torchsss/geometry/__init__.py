@@ -9,7 +9,7 @@ from torchsss.geometry.atlas import Atlas, build_atlas, parameterize
 from torchsss.geometry.camera import Camera, look_at, orthographic, perspective, pixel_centers_ndc, transform_points
 from torchsss.geometry.coherence import AttachedSamples, attach_light_view, coherent_light_samples
 from torchsss.geometry.environment import EnvironmentLight, environment_irradiance
-from torchsss.geometry.gbuffer import GBuffer, LightView, camera_gbuffer, light_view
+from torchsss.geometry.gbuffer import GBuffer, LightView, bend_towards_viewer, camera_gbuffer, light_view, view_cosine
 from torchsss.geometry.lensch import (
     BlendWeights,
     HatQuadrature,
@@ -75,6 +75,7 @@ __all__ = [
     "VertexWeights",
     "attach_light_view",
     "axis_camera",
+    "bend_towards_viewer",
     "blending_weights",
     "bounding_sphere",
     "build_atlas",
@@ -124,4 +125,5 @@ __all__ = [
     "torus",
     "transform_points",
     "vertex_weights",
+    "view_cosine",
 ]

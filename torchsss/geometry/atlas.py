@@ -59,8 +59,12 @@ the 95th percentile) with gutters, and by 12 % (43 %) without.
 from __future__ import annotations
 
 import numbers
+import os
+import pickle
+import sys
 import warnings
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -358,7 +362,8 @@ def _check_mesh_uvs(mesh: Mesh, resolution: int, padding: int) -> Tensor:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int, texels_per_unit: float):
+def _xatlas_generate(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int,
+                     texels_per_unit: float) -> SimpleNamespace:
     atlas = xatlas.Atlas()
     atlas.add_mesh(vertices, faces)
     pack = xatlas.PackOptions()
@@ -367,7 +372,52 @@ def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, paddin
     pack.bilinear = True
     pack.texels_per_unit = texels_per_unit
     atlas.generate(xatlas.ChartOptions(), pack)
-    return atlas
+    _, indices, uvs = atlas[0]
+    return SimpleNamespace(texels_per_unit=float(atlas.texels_per_unit), width=int(atlas.width),
+                           height=int(atlas.height), chart_count=int(atlas.chart_count),
+                           atlas_count=int(atlas.atlas_count), indices=np.asarray(indices), uvs=np.asarray(uvs),
+                           vertex_chart=np.asarray(atlas.get_mesh_vertex_assignment(0)[1]))
+
+
+def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int,
+                texels_per_unit: float) -> SimpleNamespace:
+    """One xatlas generation, run in a forked child process where the platform forks.
+
+    xatlas' task scheduler can lose the wake-up of a worker thread, and its destructor (``xatlas::Destroy``, when
+    the ``Atlas`` is freed) then joins that thread forever: seen as a test run that hung with both processes idle.
+    The child sends the charts back through a pipe and leaves with ``os._exit``, which never runs the destructor;
+    where ``os.fork`` is missing (Windows) or ``TORCHSSS_XATLAS_FORK=0``, it runs in this process.
+    """
+    if not hasattr(os, "fork") or os.environ.get("TORCHSSS_XATLAS_FORK", "1") == "0":
+        return _xatlas_generate(vertices, faces, resolution, padding, texels_per_unit)
+    read_fd, write_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: xatlas and numpy only, then out without destructors
+        code = 0
+        try:
+            os.close(read_fd)
+            try:
+                payload = pickle.dumps((True, _xatlas_generate(vertices, faces, resolution, padding,
+                                                               texels_per_unit)))
+            except BaseException as err:
+                payload = pickle.dumps((False, f"{type(err).__name__}: {err}"))
+            with os.fdopen(write_fd, "wb") as out:
+                out.write(payload)
+        except BaseException:
+            code = 1
+        finally:
+            sys.stdout.flush()
+            os._exit(code)
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as inp:
+        payload = inp.read()
+    os.waitpid(pid, 0)
+    if not payload:
+        raise RuntimeError("xatlas: the child process that generates the atlas returned nothing")
+    ok, result = pickle.loads(payload)
+    if not ok:
+        raise RuntimeError(f"xatlas: {result}")
+    return result
 
 
 def _xatlas_charts(mesh: Mesh, resolution: int, padding: int) -> tuple[Tensor, Tensor]:
@@ -399,7 +449,7 @@ def _xatlas_charts(mesh: Mesh, resolution: int, padding: int) -> tuple[Tensor, T
             raise ValueError(f"resolution: xatlas could not pack the {charts} charts of mesh {mesh.name!r} with "
                              f"{padding} texels of padding into one {resolution} x {resolution} atlas; raise the "
                              "resolution or lower the padding")
-    _, indices, uvs = atlas[0]
+    indices, uvs = atlas.indices, atlas.uvs
     width, height = atlas.width, atlas.height
     texel = torch.from_numpy(uvs.astype(np.float64)) * torch.tensor([float(width), float(height)], dtype=torch.float64)
     # xatlas' y grows with its image rows; store v up: row r of the texture is xatlas row r
@@ -407,7 +457,7 @@ def _xatlas_charts(mesh: Mesh, resolution: int, padding: int) -> tuple[Tensor, T
     v = 1.0 - (texel[:, 1] + padding) / resolution
     index = torch.from_numpy(indices.astype(np.int64))
     face_uvs = torch.stack((u, v), dim=-1)[index]  # (F, 3, 2)
-    chart = torch.from_numpy(atlas.get_mesh_vertex_assignment(0)[1].astype(np.int64))[index[:, 0]]
+    chart = torch.from_numpy(atlas.vertex_chart.astype(np.int64))[index[:, 0]]
     bad = (chart < 0) | (chart >= atlas.chart_count)  # faces xatlas ignored (degenerate): own "charts"
     if bool(bad.any()):
         chart[bad] = atlas.chart_count + torch.arange(int(bad.sum()))

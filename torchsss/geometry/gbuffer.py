@@ -34,7 +34,8 @@ from torchsss.geometry.raster import interpolate, rasterize
 from torchsss.geometry.shadow import bounding_sphere, light_camera
 from torchsss.physics.fresnel import check_fresnel, transmittance
 
-__all__ = ["GBuffer", "LayerGBuffer", "LightView", "camera_gbuffer", "layer_gbuffer", "light_view"]
+__all__ = ["GBuffer", "LayerGBuffer", "LightView", "bend_towards_viewer", "camera_gbuffer", "layer_gbuffer",
+           "light_view", "view_cosine"]
 
 
 class GBuffer(NamedTuple):
@@ -171,7 +172,57 @@ def camera_gbuffer(mesh: Mesh, camera: Camera) -> GBuffer:
         view_dir = (-_normalize(fwd)).expand_as(position)
     else:
         view_dir = _normalize(eye - position)
+    face = layer.face_id.clamp_min(0)[:, 0]                                        # (B, H, W)
+    face_normal = mesh.face_normals[face].permute(0, 3, 1, 2)                      # (B, 3, H, W)
+    normal = bend_towards_viewer(normal, view_dir, face_normal) * mask
     return GBuffer(position, normal, view_dir * mask, layer.face_id, mask)
+
+
+def bend_towards_viewer(normal: Tensor, view_dir: Tensor, face_normal: Tensor) -> Tensor:
+    """Shading normals turned no more away from the viewer than the face the camera sees.
+
+    Interpolated vertex normals can turn away from the eye on a face the camera sees (inner silhouettes: between a
+    cow's legs, along a bunny's ears), where the exit Fresnel term :math:`F_t(\\cos\\theta_o)` then drops to 0 and
+    leaves isolated black pixels. Where :math:`\\cos_s = n_s \\cdot v` is smaller than the face's
+    :math:`\\cos_g = |n_g \\cdot v|`, the normal is rotated in the plane of :math:`n_s` and :math:`v` until
+    :math:`n \\cdot v = \\cos_g`: :math:`n = \\cos_g v + \\sqrt{1 - \\cos_g^2}\\, w` with
+    :math:`w = (n_s - \\cos_s v) / |n_s - \\cos_s v|` (the face normal where :math:`n_s = \\pm v`). Elsewhere the
+    shading normal is kept. So the exit cosine is :math:`\\max(\\cos_s, \\cos_g)`: never more grazing than the
+    visible face.
+
+    Args:
+        normal: :math:`(B, 3, H, W)` unit shading normals.
+        view_dir: :math:`(B, 3, H, W)` unit directions towards the eye.
+        face_normal: :math:`(B, 3, H, W)` unit normals of the faces seen (either orientation).
+
+    Returns:
+        :math:`(B, 3, H, W)` unit normals.
+
+    Examples:
+        >>> v = torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)
+        >>> n = bend_towards_viewer(torch.tensor([1.0, 0.0, -0.1]).view(1, 3, 1, 1) / 1.005, v,
+        ...                         torch.tensor([0.6, 0.0, 0.8]).view(1, 3, 1, 1))
+        >>> [round(x, 3) for x in n.flatten().tolist()]
+        [0.6, 0.0, 0.8]
+    """
+    cos_s = (normal * view_dir).sum(1, keepdim=True)
+    cos_g = (face_normal * view_dir).sum(1, keepdim=True).abs().clamp(max=1.0)
+    tangent = normal - cos_s * view_dir
+    length = tangent.norm(dim=1, keepdim=True)
+    tiny = 1e-6
+    w = tangent / length.clamp_min(tiny)
+    bent = cos_g * view_dir + (1.0 - cos_g.square()).clamp_min(0.0).sqrt() * w
+    oriented = torch.where((face_normal * view_dir).sum(1, keepdim=True) < 0, -face_normal, face_normal)
+    bent = torch.where(length > tiny, bent, oriented)
+    return torch.where(cos_s < cos_g, bent, normal)
+
+
+def view_cosine(gbuf: GBuffer) -> Tensor:
+    """:math:`(B, 1, H, W)` exit cosine :math:`n \\cdot v` of a camera G-buffer, clamped to [0, 1] (0 off the object).
+
+    The one place every method takes :math:`\\cos\\theta_o` for :func:`~torchsss.physics.exit_radiance`.
+    """
+    return (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
 
 
 class LightView(NamedTuple):

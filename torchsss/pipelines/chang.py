@@ -25,7 +25,7 @@ from torch import Tensor, nn
 from torchsss.geometry.atlas import Atlas, build_atlas
 from torchsss.geometry.atlas_frame import irradiance_atlas
 from torchsss.geometry.camera import Camera
-from torchsss.geometry.gbuffer import camera_gbuffer
+from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.neighbours import ball_pairs
@@ -230,13 +230,19 @@ class IcdfRenderer(Renderer):
         roughness: GGX alpha of ``specular``.
         source_faces: build the atlas on the mesh decimated to about this many faces while the camera sees the
             full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
+        stride: evaluate the sampled (global) term at every ``stride``-th pixel and interpolate it where the surface
+            is smooth, exactly at edges (:mod:`torchsss.pipelines.coarse`, as the reference's ``stride``); None
+            (default): the supersampling factor of ``render(..., spp=s * s)``, so a pixel-integrated frame costs
+            little more than one sample per pixel; 1: every pixel.
+        refine: with ``stride`` > 1, an interpolated pixel whose grid corners differ by more than this (relative)
+            is evaluated exactly.
     """
 
     method = "icdf"
     hybrid = False
     defaults: ClassVar[dict] = dict(samples=4096, atlas_resolution=512, seed=0, sobol=True, levels=None,
                                     max_pairs=DEFAULT_MAX_PAIRS, shadow_resolution=1024, specular=False,
-                                    roughness=0.3, source_faces=None)
+                                    roughness=0.3, source_faces=None, stride=None, refine=0.2)
 
     def _build(self) -> None:
         k = self.knobs
@@ -256,35 +262,43 @@ class IcdfRenderer(Renderer):
         t1 = time.perf_counter()
         u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
         mask = gbuf.mask[0, 0]
-        receivers = gbuf.position[0].permute(1, 2, 0)[mask].unsqueeze(0)
+        h, w = camera.resolution
+        pos_img = gbuf.position[0].permute(1, 2, 0)
+        stride = self._supersample if k["stride"] is None else k["stride"]
+        coarse = coarse_receivers(pos_img, gbuf.normal[0].permute(1, 2, 0), mask, stride)
+        pos_flat = pos_img.reshape(-1, 3)
         plan = self._local_plan(camera, gbuf) if self.hybrid and self.built.local is not None else None
         local_used = None
         if self.hybrid:
             local_used = getattr(self, "_local_reason", "atlas") if self.built.local is not None else \
                 ("none (the split is off: everything is sampled)" if self.module.bound <= 0 else "atlas")
         if plan is not None:
-            b = plan[3].global_everywhere(e, u, receivers)
-            if plan[0] > 0:
-                b = b + self._surface_local(e, gbuf, plan)[None]
+            def sampled(index: Tensor) -> Tensor:
+                return plan[3].global_everywhere(e, u, pos_flat[index].unsqueeze(0))[0]
         elif self.hybrid:
-            uv = self.view.uv(camera, gbuf.position, gbuf.mask)
-            rec_uv = uv[0].permute(1, 2, 0)[mask].unsqueeze(0)
-            b = self.module(e, u, receivers, rec_uv)
+            uv_flat = self.view.uv(camera, gbuf.position, gbuf.mask)[0].permute(1, 2, 0).reshape(-1, 2)
+
+            def sampled(index: Tensor) -> Tensor:
+                return self.module(e, u, pos_flat[index].unsqueeze(0), uv_flat[index].unsqueeze(0))[0]
         else:
-            b = self.module(e, u, receivers)
+            def sampled(index: Tensor) -> Tensor:
+                return self.module(e, u, pos_flat[index].unsqueeze(0))[0]
+        b = sampled(coarse.evaluate)
+        exact = coarse.refine(b, k["refine"])  # interpolated pixels whose corners disagree: evaluated exactly
+        image = coarse.scatter(b, h, w, exact, sampled(coarse.fill[exact]) if exact.numel() else None)
+        if plan is not None and plan[0] > 0:
+            image[mask] = image[mask] + self._surface_local(e, gbuf, plan)
         t2 = time.perf_counter()
-        h, w = camera.resolution
-        radiosity = torch.zeros(h, w, b.shape[-1], dtype=b.dtype, device=device)
-        radiosity[mask] = b[0]
-        radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
-        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        radiosity = image.permute(2, 0, 1).unsqueeze(0)
+        cos_o = view_cosine(gbuf)
         radiance = exit_radiance(radiosity, cos_o, eta) * gbuf.mask
         if k["specular"]:
             radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])
         stats = dict(self.built.stats)
         stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=time.perf_counter() - t2,
                      atlas_resolution=self.atlas.resolution, samples=k["samples"],
-                     receivers=int(receivers.shape[1]), sobol=k["sobol"], seed=k["seed"])
+                     receivers=int(coarse.evaluate.numel() + exact.numel()),
+                     interpolated=int(coarse.fill.numel() - exact.numel()), sobol=k["sobol"], seed=k["seed"])
         if self.hybrid:
             stats["local_term"] = local_used
             if plan is not None:

@@ -20,7 +20,7 @@ from torch import nn
 from torchsss.geometry.atlas import Atlas, build_atlas
 from torchsss.geometry.atlas_frame import irradiance_atlas
 from torchsss.geometry.camera import Camera
-from torchsss.geometry.gbuffer import camera_gbuffer
+from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lensch import (
     MAX_THROUGHPUT_ENTRIES,
     blending_weights,
@@ -180,7 +180,7 @@ class LenschRenderer(Renderer):
         t2 = time.perf_counter()
         mask = gbuf.mask
         b = self.atlas.sample(b_atlas, self.view.uv(camera, gbuf.position, mask)) * mask
-        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        cos_o = view_cosine(gbuf)
         radiance = exit_radiance(b, cos_o, eta) * mask
         if k["specular"]:
             radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])

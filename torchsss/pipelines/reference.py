@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
-from torchsss.geometry.gbuffer import camera_gbuffer
+from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lights import DirectionalLight, Light, surface_irradiance
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
@@ -296,7 +296,7 @@ class ReferenceRenderer(Renderer):
         stats["pairs"] = stats["receivers"] * stats["samples"]
         stats["t_integrate_s"] = time.perf_counter() - t2
         radiosity = plan.scatter(b, h, w, exact, b_exact).permute(2, 0, 1).unsqueeze(0)
-        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        cos_o = view_cosine(gbuf)
         radiance = exit_radiance(radiosity, cos_o, eta, self.fresnel) * gbuf.mask
         if k["specular"]:
             radiance = radiance + _specular(mesh, gbuf, lights, eta, k["shadows"], k["roughness"])
@@ -437,7 +437,7 @@ def render_reference_objects(
     stats["pairs"] = sum(a * b for a, b in zip(stats["samples_per_object"], stats["receivers_per_object"]))
     stats["spacing_mm"] = min(stats["spacing_mm_per_object"])
     radiosity = radiosity.permute(2, 0, 1).unsqueeze(0)
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+    cos_o = view_cosine(gbuf)
     radiance = torch.zeros_like(radiosity)
     for k, material in enumerate(materials):
         radiance = radiance + exit_radiance(radiosity, cos_o, material.eta, fresnel) * masks[:, k:k + 1]

@@ -25,11 +25,14 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
+from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
 from torchsss.modules.material import material_module
+from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import AtlasView
+from torchsss.pipelines.subpixel import upsample_radiosity
 
 __all__ = ["RenderResult", "Renderer", "box_downsample", "check_dtype", "check_lights", "check_objects",
            "supersample_camera"]
@@ -203,7 +206,8 @@ class Renderer:
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         raise NotImplementedError
 
-    def render(self, lights: Light | Sequence[Light], camera: Camera, *, spp: int = 1) -> RenderResult:
+    def render(self, lights: Light | Sequence[Light], camera: Camera, *, spp: int = 1,
+               subpixel: str = "exact") -> RenderResult:
         """Render one frame; ``stats`` gain ``method``, ``setup_s``, ``frame_s``, ``knobs`` and ``spp``.
 
         Args:
@@ -212,8 +216,13 @@ class Renderer:
             spp: samples per pixel, a square (1, 4, 9, 16, ...): the frame is rendered on an
                 :math:`\\sqrt{spp}`-times finer pixel grid (a stratified sub-pixel grid) and box-filtered back
                 (:func:`supersample_camera`, :func:`box_downsample`), so edges and shadow terminators are
-                pixel-integrated, as an independent reference or a path tracer produces them; costs ``spp`` times
-                the pixels.
+                pixel-integrated, as an independent reference or a path tracer produces them.
+            subpixel: with ``spp`` > 1, ``"exact"`` (default) renders the method on the finer grid (up to ``spp``
+                times the cost; the reference and the Chang methods evaluate :math:`B` about once per pixel where
+                the surface is smooth); ``"upsample"`` renders :math:`B` once per pixel and upsamples it to the
+                sub-pixels edge-aware, with each sub-pixel's own coverage and exit cosine
+                (:mod:`torchsss.pipelines.subpixel`: the cost of one sub-pixel G-buffer; translucent methods without
+                ``specular``).
 
         Returns:
             A :class:`RenderResult` (tensors of shape :math:`(1, 3, H, W)` and a :math:`(1, 1, H, W)` mask).
@@ -222,14 +231,35 @@ class Renderer:
             raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
         lights = check_lights(lights)
         fine, factor = supersample_camera(camera, spp)
-        self._supersample = factor  # a method may evaluate smooth parts of the fine grid more coarsely
+        if subpixel not in ("exact", "upsample"):
+            raise ValueError(f"subpixel: expected 'exact' or 'upsample', got {subpixel!r}")
+        upsample = subpixel == "upsample" and factor > 1
+        if upsample and (not self.needs_material or self.knobs.get("specular")):
+            raise ValueError(f"subpixel: expected 'exact' for {self.method!r}"
+                             f"{' with specular' if self.needs_material else ''} (upsampling forms the exit "
+                             f"radiance from the translucent radiosity alone), got 'upsample'")
+        # a method may evaluate smooth parts of the fine grid more coarsely
+        self._supersample = 1 if upsample else factor
         t0 = time.perf_counter()
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
-            result = box_downsample(self._render(lights, fine), factor)
+            if upsample:
+                result = box_downsample(self._upsampled(lights, camera, fine, factor), factor)
+            else:
+                result = box_downsample(self._render(lights, fine), factor)
         frame_s = time.perf_counter() - t0
         result.stats.update(method=self.method, setup_s=self.setup_s, frame_s=frame_s, knobs=dict(self.knobs),
-                            spp=factor * factor)
+                            spp=factor * factor, subpixel=subpixel if factor > 1 else "none")
         return result
+
+    def _upsampled(self, lights: list[Light], camera: Camera, fine: Camera, factor: int) -> RenderResult:
+        """One frame at the pixels, its radiosity upsampled to the ``fine`` grid (:mod:`~.subpixel`)."""
+        pixel = self._render(lights, camera)
+        t0 = time.perf_counter()
+        subpixels = camera_gbuffer(self.mesh, fine)
+        b = upsample_radiosity(pixel.radiosity, camera_gbuffer(self.mesh, camera), subpixels, factor)
+        radiance = exit_radiance(b, view_cosine(subpixels), self.eta, getattr(self, "fresnel", "exact"))
+        stats = dict(pixel.stats, t_subpixel_s=time.perf_counter() - t0)
+        return RenderResult(radiance * subpixels.mask, b, subpixels.mask, stats)
 
     def __repr__(self) -> str:
         knobs = ", ".join(f"{k}={v!r}" for k, v in self.knobs.items())

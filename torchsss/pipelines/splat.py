@@ -45,7 +45,7 @@ from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
-from torchsss.geometry.gbuffer import camera_gbuffer, light_view
+from torchsss.geometry.gbuffer import camera_gbuffer, light_view, view_cosine
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
@@ -165,14 +165,15 @@ class SplatRenderer(Renderer):
             else int(k["grid"])
         self.module = SplatTranslucency(self.material, eps=k["eps"], method=k["splat_method"])
 
-    def render(self, lights, camera: Camera, mesh: Mesh | None = None, *, spp: int = 1) -> RenderResult:
+    def render(self, lights, camera: Camera, mesh: Mesh | None = None, *, spp: int = 1,
+               subpixel: str = "exact") -> RenderResult:
         """One frame (see :meth:`Renderer.render`); ``mesh`` replaces the built mesh's vertices (same topology)."""
         if mesh is not None:
             if not isinstance(mesh, Mesh) or mesh.faces.shape != self.mesh.faces.shape:
                 raise ValueError("mesh: expected a Mesh with the built mesh's faces (a deformed pose), got another "
                                  "topology")
             self.mesh = mesh.with_dtype(self.dtype)
-        return super().render(lights, camera, spp=spp)
+        return super().render(lights, camera, spp=spp, subpixel=subpixel)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, dtype, eta = self.knobs, self.mesh, self.dtype, self.eta
@@ -187,7 +188,7 @@ class SplatRenderer(Renderer):
             b = b + self.module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
                                 src_distance_scale=at_sources(self.md, mesh, fid, bary),
                                 src_irradiance_scale=at_sources(self.mi, mesh, fid, bary))
-        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        cos_o = view_cosine(gbuf)
         radiance = exit_radiance(b, cos_o, eta) * gbuf.mask
         if k["specular"]:
             radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])
@@ -306,7 +307,7 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material | nn.Module]], l
     ids = {"src_object": src_obj, "dst_object": dst_object} if clip_objects else {}
     with torch.no_grad():
         b = module(src_pos, src_flux, gbuf.position, gbuf.mask, view_proj, src_material=src_obj, **ids)
-    cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+    cos_o = view_cosine(gbuf)
     radiance = torch.zeros_like(b)
     for k, mat in enumerate(materials):
         radiance = radiance + exit_radiance(b, cos_o, mat.eta) * masks[:, k:k + 1]

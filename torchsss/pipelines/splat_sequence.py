@@ -21,7 +21,7 @@ from torch import Tensor
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.coherence import AttachedSamples, coherent_light_samples
 from torchsss.geometry.environment import EnvironmentLight
-from torchsss.geometry.gbuffer import camera_gbuffer, light_view
+from torchsss.geometry.gbuffer import camera_gbuffer, light_view, view_cosine
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.modules.material import material_module
@@ -145,7 +145,7 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
             total = total + src_flux[0].sum(0)
             with torch.no_grad():
                 b = b + module(src_pos, src_flux, gbuf.position, gbuf.mask, view_proj)
-        cos_o = (gbuf.normal * gbuf.view_dir).sum(1, keepdim=True).clamp(0.0, 1.0)
+        cos_o = view_cosine(gbuf)
         radiance = exit_radiance(b, cos_o, profile.eta) * gbuf.mask
         stats = {"frame": t, "grid": n, "splats": splats, "flux": [float(v) for v in total],
                  "r_max_mm": float(module.r_max), "eps": eps, "coherent": coherent,
