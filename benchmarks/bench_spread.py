@@ -1,6 +1,6 @@
 """Spread: every method at its default (planned) knobs on scenes nobody tuned on, against the reference.
 
-Issue 16's yardstick for "defaults that generalise": the default scene at 128x128 and 256x256 and a spread of
+Issue 16's yardstick for "defaults that generalise": the default scene at 128x128, 256x256 and 512x512 and a spread of
 other scenes at 256x256 (shared meshes and procedural shapes; object sizes 5-80 mm; materials from ketchup to skim
 milk; the key light in front of, beside or behind the object). Every scene is built here from a few numbers
 (:func:`spread_scene`): the camera looks at the object from 1.6 bounding-box diagonals with a 30 degree field of
@@ -43,6 +43,7 @@ MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
 SPREAD = {
     "default-128": ("default", None, None, None, 128, None),
     "default-256": ("default", None, None, None, 256, None),
+    "default-512": ("default", None, None, None, 512, None),
     "bunny-30-marble-side": (str(MESHES / "stanford-bunny.obj"), 30.0, "marble", "side", 256, None),
     "bunny-30-marble-back": (str(MESHES / "stanford-bunny.obj"), 30.0, "marble", "back", 256, None),
     "igea-10-skin1-side": (str(MESHES / "igea.ply"), 10.0, "skin1", "side", 256, 60000),  # seen from -z: the face

@@ -819,49 +819,59 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
         r = dvec.norm(dim=-1)
         u = dvec / r.clamp_min(torch.finfo(torch.float64).tiny)[:, None]
         sr = torch.einsum("ea,eab,eb->e", u, cov[ri], u).clamp_min(0.0)
-        c_dist.append(r)
-        r_var.append(sr)
-        t_var.append((cov[ri].diagonal(dim1=1, dim2=2).sum(-1) - sr).clamp_min(0.0))
+        c_dist.append(r.to(mesh.vertices.dtype))  # stored in the mesh's dtype block by block
+        r_var.append(sr.to(mesh.vertices.dtype))
+        t_var.append((cov[ri].diagonal(dim1=1, dim2=2).sum(-1) - sr).clamp_min(0.0).to(mesh.vertices.dtype))
     terms = int(reg.numel()) * n * n + int(has_j.sum()) * gu.numel() * nv
     if terms > max_terms:
         raise ValueError(f"max_terms: expected at most {max_terms} quadrature terms, got {terms} ({near.numel()} "
                          f"entries within {radius_mm:.3g} mm); lower radius_mm or subdivisions")
-    tri = v[fv[reg]]  # (r, 3, 3)
-    pts = torch.einsum("qk,rkd->rqd", bary, tri)
-    hat = bary[:, pc[reg]].T  # (r, q): the barycentric of i
-    d_reg = (pts - v[j[reg]][:, None, :]).norm(dim=-1)
-    w_reg = area[reg][:, None] / (n * n) * hat
-    e_reg = pair_entry[reg][:, None].expand_as(d_reg)
+    dtype = mesh.vertices.dtype
+    block = max(1, (1 << 21) // max(n * n, gu.numel() * nv))  # rows per block: about 2M terms of float64 at a time
+    parts: list[tuple[Tensor, Tensor, Tensor]] = []
+    for lo in range(0, reg.numel(), block):  # regular rule on faces without j
+        rb = reg[lo:lo + block]
+        tri = v[fv[rb]]  # (r, 3, 3)
+        pts = torch.einsum("qk,rkd->rqd", bary, tri)
+        hat = bary[:, pc[rb]].T  # (r, q): the barycentric of i
+        d_reg = (pts - v[j[rb]][:, None, :]).norm(dim=-1)
+        w_reg = area[rb][:, None] / (n * n) * hat
+        parts.append((pair_entry[rb][:, None].expand_as(d_reg).reshape(-1).to(torch.int32),
+                      d_reg.reshape(-1).to(dtype), w_reg.reshape(-1).to(dtype)))
     # Duffy rule with the apex at v_j where the face holds j
-    dj = has_j.nonzero()[:, 0]
-    fvd = fv[dj]
-    jj = j[dj]
-    apex_corner = (fvd == jj[:, None]).to(torch.int64).argmax(1)
-    a_corner, b_corner = (apex_corner + 1) % 3, (apex_corner + 2) % 3
-    x0 = v[jj]
-    xa = v[fvd.gather(1, a_corner[:, None])[:, 0]]
-    xb = v[fvd.gather(1, b_corner[:, None])[:, 0]]
     uu = gu[:, None].expand(gu.numel(), nv).reshape(-1).to(device)
     vv = gv[None, :].expand(gu.numel(), nv).reshape(-1).to(device)
     ww = (wu[:, None] * wv[None, :]).reshape(-1).to(device)
-    e1, e2 = xa - x0, xb - x0
-    direction = e1[:, None, :] + vv[None, :, None] * (e2 - e1)[:, None, :]  # (p, q, 3)
-    d_duf = uu[None, :] * direction.norm(dim=-1)
-    # the hat of i at s: barycentrics (1 - u, u (1 - v), u v) of (apex, a, b)
-    i_corner = pc[dj]
-    hat_duf = torch.where((i_corner == apex_corner)[:, None], 1.0 - uu[None, :],
-                          torch.where((i_corner == a_corner)[:, None], uu[None, :] * (1.0 - vv[None, :]),
-                                      uu[None, :] * vv[None, :]))
-    w_duf = 2.0 * area[dj][:, None] * uu[None, :] * ww[None, :] * hat_duf
-    e_duf = pair_entry[dj][:, None].expand_as(d_duf)
-    term_entry = torch.cat([e_reg.reshape(-1), e_duf.reshape(-1)])
-    distance = torch.cat([d_reg.reshape(-1), d_duf.reshape(-1)])
-    weight = torch.cat([w_reg.reshape(-1), w_duf.reshape(-1)])
-    order = torch.argsort(term_entry, stable=True)
-    dtype = mesh.vertices.dtype
-    term_entry = term_entry.to(torch.int32)  # 20 bytes a term with float32 distances and weights
+    has_j_rows = has_j.nonzero()[:, 0]
+    for lo in range(0, has_j_rows.numel(), block):
+        dj = has_j_rows[lo:lo + block]
+        fvd = fv[dj]
+        jj = j[dj]
+        apex_corner = (fvd == jj[:, None]).to(torch.int64).argmax(1)
+        a_corner, b_corner = (apex_corner + 1) % 3, (apex_corner + 2) % 3
+        x0 = v[jj]
+        xa = v[fvd.gather(1, a_corner[:, None])[:, 0]]
+        xb = v[fvd.gather(1, b_corner[:, None])[:, 0]]
+        e1, e2 = xa - x0, xb - x0
+        direction = e1[:, None, :] + vv[None, :, None] * (e2 - e1)[:, None, :]  # (p, q, 3)
+        d_duf = uu[None, :] * direction.norm(dim=-1)
+        # the hat of i at s: barycentrics (1 - u, u (1 - v), u v) of (apex, a, b)
+        i_corner = pc[dj]
+        hat_duf = torch.where((i_corner == apex_corner)[:, None], 1.0 - uu[None, :],
+                              torch.where((i_corner == a_corner)[:, None], uu[None, :] * (1.0 - vv[None, :]),
+                                          uu[None, :] * vv[None, :]))
+        w_duf = 2.0 * area[dj][:, None] * uu[None, :] * ww[None, :] * hat_duf
+        parts.append((pair_entry[dj][:, None].expand_as(d_duf).reshape(-1).to(torch.int32),
+                      d_duf.reshape(-1).to(dtype), w_duf.reshape(-1).to(dtype)))
+    if parts:
+        term_entry, distance, weight = (torch.cat(x) for x in zip(*parts))
+    else:
+        term_entry = torch.zeros(0, dtype=torch.int32, device=device)
+        distance = weight = torch.zeros(0, dtype=dtype, device=device)
+    del parts
+    order = torch.argsort(term_entry, stable=True)  # 12 bytes a term with float32 distances and weights
     return HatQuadrature(torch.cat(c_dist).to(dtype), torch.cat(r_var).to(dtype), torch.cat(t_var).to(dtype), near,
-                         term_entry[order], distance[order].to(dtype), weight[order].to(dtype), float(radius_mm))
+                         term_entry[order], distance[order], weight[order], float(radius_mm))
 
 
 def _check_int_arg(x: object, name: str, minimum: int) -> int:
