@@ -485,8 +485,21 @@ def test_xatlas_in_a_forked_child_matches_in_process(monkeypatch):
     if not hasattr(os, "fork"):
         pytest.skip("no os.fork on this platform: xatlas runs in-process")
     mesh = torus(5.0, 1.8, 24, 12)
+    forks = []
+    real_fork = os.fork
+
+    def counting_fork():
+        pid = real_fork()
+        if pid:
+            forks.append(pid)
+        return pid
+
+    monkeypatch.setattr(os, "fork", counting_fork)
     forked = build_atlas(mesh, 128)
+    assert forks  # the charts came from a child
     monkeypatch.setenv("TORCHSSS_XATLAS_FORK", "0")
+    n = len(forks)
     local = build_atlas(mesh, 128)
+    assert len(forks) == n  # and these from this process
     assert torch.equal(forked.face_uvs, local.face_uvs)
     assert torch.equal(forked.valid_mask, local.valid_mask)

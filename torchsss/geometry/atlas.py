@@ -61,7 +61,6 @@ from __future__ import annotations
 import numbers
 import os
 import pickle
-import sys
 import warnings
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -405,8 +404,7 @@ def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, paddin
                 out.write(payload)
         except BaseException:
             code = 1
-        finally:
-            sys.stdout.flush()
+        finally:  # no flush: the parent's buffered output must not be written twice
             os._exit(code)
     os.close(write_fd)
     with os.fdopen(read_fd, "rb") as inp:

@@ -150,6 +150,8 @@ class Renderer:
     needs_material = True
     #: knob -> default; subclasses extend it.
     defaults: ClassVar[dict] = {}
+    #: the Fresnel model of the exit radiance (the reference's ``fresnel`` knob sets its own).
+    fresnel: str = "exact"
 
     def __init__(self, mesh: Mesh, material: Material | str | nn.Module | None, *, dtype: torch.dtype = torch.float32,
                  differentiable: bool = False, progress: bool = False, **knobs) -> None:
@@ -257,7 +259,7 @@ class Renderer:
         t0 = time.perf_counter()
         subpixels = camera_gbuffer(self.mesh, fine)
         b = upsample_radiosity(pixel.radiosity, camera_gbuffer(self.mesh, camera), subpixels, factor)
-        radiance = exit_radiance(b, view_cosine(subpixels), self.eta, getattr(self, "fresnel", "exact"))
+        radiance = exit_radiance(b, view_cosine(subpixels), self.eta, self.fresnel)
         stats = dict(pixel.stats, t_subpixel_s=time.perf_counter() - t0)
         return RenderResult(radiance * subpixels.mask, b, subpixels.mask, stats)
 
