@@ -232,8 +232,9 @@ class IcdfRenderer(Renderer):
             full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
         stride: evaluate the sampled (global) term at every ``stride``-th pixel and interpolate it where the surface
             is smooth, exactly at edges (:mod:`torchsss.pipelines.coarse`, as the reference's ``stride``); None
-            (default): the supersampling factor of ``render(..., spp=s * s)``, so a pixel-integrated frame costs
-            little more than one sample per pixel; 1: every pixel.
+            (default): the supersampling factor of ``render(..., spp=s * s, subpixel="exact")``, so a supersampled
+            frame evaluates it about once per pixel where the surface is smooth and on every sub-pixel at edges;
+            1: every pixel.
         refine: with ``stride`` > 1, an interpolated pixel whose grid corners differ by more than this (relative)
             is evaluated exactly.
     """
