@@ -47,7 +47,7 @@ ERROR_KEYS = {
               "splat_q_depth"],
     "icdf": ["icdf_a", "icdf_p", "icdf_floor", "icdf_u", "icdf_q_depth"],
     "hybrid": ["hybrid_a", "hybrid_p", "hybrid_floor", "hybrid_u", "hybrid_u_floor", "hybrid_q_depth"],
-    "lensch": ["lensch_floor", "lensch_texel"],
+    "lensch": ["lensch_floor", "lensch_texel", "lensch_blend"],
 }
 #: Frame-time constants per method, fitted in this order: the warm rows' reference, icdf and hybrid frames run
 #: in the fused pair sum, whose rate (``fused_t_pair``) the reference rows fix and the estimators reuse.

@@ -10,7 +10,7 @@ import torch
 from torch.func import functional_call
 
 from torchsss.geometry import DirectionalLight, PointLight, build_atlas, sphere, surface_irradiance
-from torchsss.geometry.lensch import build_throughput, local_kernel_geometry, vertex_weights
+from torchsss.geometry.lensch import blending_weights, build_throughput, local_kernel_geometry, vertex_weights
 from torchsss.modules import DipoleMaterial, TabulatedMaterial
 from torchsss.modules.lensch import GlobalResponse, IrradianceAtlas, LenschTranslucency, LocalResponse
 from torchsss.ops.sv_conv import sv_conv2d_reference
@@ -74,9 +74,9 @@ def test_local_response_is_the_kernel_convolution(small):
 
 def test_local_response_copy_flag_shares_or_copies_the_build_tensors(small):
     _, atlas = small
-    geom = local_kernel_geometry(atlas, 5)
+    geom = local_kernel_geometry(atlas, 5, compact=True)
     mat = _material()
-    correction = torch.rand(3, 64, 64, 5, 5, dtype=torch.float64)
+    correction = torch.rand(3, geom.index.numel(), 5, 5, dtype=torch.float64)
     shared = LocalResponse(geom, mat, correction=correction, copy=False)
     copied = LocalResponse(geom, mat, correction=correction)
     assert shared.distance.data_ptr() == geom.distance.data_ptr()
@@ -86,6 +86,74 @@ def test_local_response_copy_flag_shares_or_copies_the_build_tensors(small):
     torch.testing.assert_close(shared.kernels(), copied.kernels(), rtol=0, atol=0)
     with pytest.raises(TypeError, match="copy: expected a bool"):
         LocalResponse(geom, mat, copy="no")
+
+
+def test_compact_local_response_equals_the_full_one(small):
+    """Kernels held for the valid receivers only: the same kernels, planes and response as the full geometry's,
+    with a blending correction, M_d, a mask and M_i; receivers outside the compact set get exactly 0."""
+    _, atlas = small
+    full = local_kernel_geometry(atlas, 5)
+    comp = local_kernel_geometry(atlas, 5, compact=True)
+    valid = atlas.valid_mask[0, 0].reshape(-1)
+    assert torch.equal(comp.index, valid.nonzero(as_tuple=True)[0]) and comp.shape == (64, 64)
+    assert 0 < comp.index.numel() < 64 * 64
+    torch.testing.assert_close(comp.distance, full.distance.reshape(-1, 5, 5)[comp.index], rtol=0, atol=0)
+    torch.testing.assert_close(comp.area, full.area.reshape(-1, 5, 5)[comp.index], rtol=0, atol=0)
+    outside = torch.ones(64 * 64, dtype=torch.bool)
+    outside[comp.index] = False
+    assert float(full.area.reshape(-1, 5, 5)[outside].abs().max()) == 0.0
+    mat = _material()
+    g = torch.Generator().manual_seed(3)
+    corr_full = torch.rand(3, 64, 64, 5, 5, dtype=torch.float64, generator=g) * valid.reshape(1, 64, 64, 1, 1)
+    corr_comp = corr_full.reshape(3, -1, 5, 5)[:, comp.index]
+    md = 0.5 + torch.rand(1, 1, 64, 64, dtype=torch.float64, generator=g)
+    mask = (torch.rand(1, 1, 64, 64, generator=g) > 0.3).to(torch.float64)
+    mi = 0.5 + torch.rand(1, 3, 64, 64, dtype=torch.float64, generator=g)
+    kw = dict(distance_scale=md, mask=mask, irradiance_scale=mi)
+    a = LocalResponse(full, mat, correction=corr_full, **kw)
+    b = LocalResponse(comp, mat, correction=corr_comp, **kw)
+    torch.testing.assert_close(a.kernels(), b.kernels(), rtol=1e-14, atol=0)
+    e = torch.rand(2, 3, 64, 64, dtype=torch.float64, generator=g) * atlas.valid_mask
+    torch.testing.assert_close(a(e), b(e), rtol=1e-13, atol=0)
+    # the loop-based reference: every tap of every valid receiver written out (M_d on the distance, the mask on
+    # both ends, the disk self term at the centre, the correction added)
+    kern = b.kernels().detach()
+    m = mask.reshape(64, 64)
+    mdp = torch.nn.functional.pad(md[0, 0], (2, 2, 2, 2))
+    mp = torch.nn.functional.pad(m, (2, 2, 2, 2))
+    for flat in comp.index[:: max(1, comp.index.numel() // 40)].tolist():
+        y, x = divmod(flat, 64)
+        d = full.distance[y, x] * mdp[y:y + 5, x:x + 5]
+        ar = full.area[y, x] * mp[y:y + 5, x:x + 5] * m[y, x]
+        want = ar.unsqueeze(-1) * mat(d.unsqueeze(-1))
+        disk = dipole_cumulative(torch.sqrt(ar[2, 2] / math.pi).reshape(1, 1) * md[0, 0, y, x], mat.sigma_a,
+                                 mat.sigma_s_prime, mat.eta)[0] / md[0, 0, y, x] ** 2
+        want[2, 2] = disk
+        want = want.permute(2, 0, 1) + corr_full[:, y, x]
+        torch.testing.assert_close(kern[:, y, x], want, rtol=1e-12, atol=1e-15)
+    assert float(kern.reshape(3, -1, 5, 5)[:, outside].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="correction: expected shape"):
+        LocalResponse(comp, mat, correction=corr_full)
+    with pytest.raises(ValueError, match="needs its shape"):
+        LocalResponse(comp._replace(shape=None), mat)
+
+
+def test_compact_blending_correction_is_the_full_one_at_its_receivers(small):
+    mesh, atlas = small
+    mat = _material("marble")
+    comp = local_kernel_geometry(atlas, 5, compact=True)
+    full = blending_weights(mesh, atlas, mat, kernel_size=5)
+    part = blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index)
+    torch.testing.assert_close(part.weights, full.weights, rtol=0, atol=0)
+    torch.testing.assert_close(part.kernel_correction, full.kernel_correction.reshape(3, -1, 5, 5)[:, comp.index],
+                               rtol=0, atol=0)
+    assert float(full.kernel_correction.abs().amax()) > 0
+    with pytest.raises(ValueError, match="every valid texel"):
+        blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index[1:])
+    with pytest.raises(TypeError, match="index: expected a \\(N,\\) int64 tensor"):
+        blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index.to(torch.int32))
+    with pytest.raises(ValueError, match="index: expected flat texels"):
+        blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index + 64 * 64)
 
 
 def test_global_response_against_dense_sums(small):
@@ -244,17 +312,18 @@ def test_extremes_tiny_and_huge_r_max():
             assert float(bg[chart].mean()) > 20 * float(bl[chart].mean())
 
 
-def test_row_block_kernels_match_the_one_expression(small):
-    """The eager row blocks (profile evaluated only where a receiver has a source) against the autograd path."""
+def test_row_block_kernels_match_the_one_expression(small, monkeypatch):
+    """The eager blocks of receivers (only the valid ones are held) against the autograd path's one expression."""
     _, atlas = small
     local = LocalResponse(local_kernel_geometry(atlas, 5), _material("marble"))
+    assert 0 < local.index.numel() < 64 * 64  # some receivers are not held: the test covers the compaction
+    monkeypatch.setattr(LocalResponse, "block_bytes", 5 * 25 * 4 * 8 * 97)  # 97 receivers a block: 23 blocks
     with torch.no_grad():
-        blocks = local.kernels()
+        blocks = local.planes()
     with torch.enable_grad():
-        whole = local.kernels().detach()
-    live = (local.area != 0).flatten(2).any(-1)
-    assert 0 < int(live.sum()) < live.numel()  # some receivers are skipped: the test covers the compaction
+        whole = local.planes().detach()
     torch.testing.assert_close(blocks, whole, rtol=1e-12, atol=0)
+    assert float(whole.abs().amax()) > 0
 
 
 def test_cached_kernels_follow_material_edits(small):
@@ -359,3 +428,35 @@ def test_tabulated_material_gradients_converge_to_the_dipole_gradients():
               for n in (64, 1024, 8192)]
     assert errors[0] < 0.05 and errors[1] < 1e-4 and errors[2] < 1e-5, errors
     assert errors[2] < errors[1] < errors[0], errors
+
+
+def test_local_response_from_atlas_derives_the_stored_taps_bit_for_bit(small):
+    """Taps gathered from the atlas's maps at evaluation time equal the stored compact geometry's, with M_d, a mask,
+    M_i and a correction, in the eager blocks and on the autograd path; gradients reach the material alike."""
+    _, atlas = small
+    comp = local_kernel_geometry(atlas, 5, compact=True)
+    g = torch.Generator().manual_seed(5)
+    corr = torch.rand(3, comp.index.numel(), 5, 5, dtype=torch.float64, generator=g)
+    md = 0.5 + torch.rand(1, 1, 64, 64, dtype=torch.float64, generator=g)
+    mask = (torch.rand(1, 1, 64, 64, generator=g) > 0.3).to(torch.float64)
+    mi = 0.5 + torch.rand(1, 3, 64, 64, dtype=torch.float64, generator=g)
+    e = torch.rand(1, 3, 64, 64, dtype=torch.float64, generator=g) * atlas.valid_mask
+    for kw in ({}, {"correction": corr, "distance_scale": md, "mask": mask, "irradiance_scale": mi}):
+        mat_a, mat_b = _material(), _material()
+        stored = LocalResponse(comp, mat_a, **kw)
+        derived = LocalResponse.from_atlas(atlas, 5, mat_b, **kw)
+        assert derived.distance is None and derived.area is None
+        with torch.no_grad():
+            torch.testing.assert_close(derived.planes(), stored.planes(), rtol=0, atol=0)
+        out_a, out_b = stored(e), derived(e)
+        torch.testing.assert_close(out_b, out_a, rtol=0, atol=0)
+        out_a.sum().backward()
+        out_b.sum().backward()
+        for pa, pb in zip(mat_a.parameters(), mat_b.parameters()):
+            torch.testing.assert_close(pb.grad, pa.grad, rtol=1e-12, atol=0)
+    with pytest.raises(TypeError, match="atlas"):
+        LocalResponse.from_atlas(None, 5, _material())
+    with pytest.raises(ValueError, match="kernel_size"):
+        LocalResponse.from_atlas(atlas, 4, _material())
+    with pytest.raises(ValueError, match="correction: expected shape"):
+        LocalResponse.from_atlas(atlas, 5, _material(), correction=corr[:, 1:])

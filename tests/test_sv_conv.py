@@ -207,3 +207,58 @@ def test_onnx_export_dynamic_size(tmp_path, batched):
     assert res["max_abs_diff"] <= 1e-6, res
     (out,) = run_onnxruntime(path, test)
     np.testing.assert_allclose(out, sv_conv2d_reference(*test).numpy(), rtol=0, atol=1e-5)
+
+
+def _to_planes(kern):
+    k = kern.shape[-1]
+    lead = kern.shape[:-2]
+    return kern.reshape(*lead, k * k).movedim(-1, -3)
+
+
+@pytest.mark.parametrize("mode", ["off", "on"])
+@pytest.mark.parametrize("batched", [False, True], ids=["shared", "batched"])
+@pytest.mark.parametrize(("h", "w", "k"), [(5, 4, 3), (6, 7, 5), (3, 3, 1)])
+def test_planes_layout_matches_the_loop(h, w, k, batched, mode, monkeypatch):
+    """sv_conv2d_planes (kernels given tap-major, no permuting copy) against the loop: eager, compiled, autograd."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", mode)
+    from torchsss.ops import sv_conv2d_planes
+
+    img = _rand(2, 3, h, w, dtype=torch.float32)
+    kern = _rand(*((2,) if batched else ()), h, w, k, k, seed=1, dtype=torch.float32)
+    planes = _to_planes(kern)
+    assert planes.shape == (*((2,) if batched else ()), k * k, h, w)
+    want = loop_conv(img.double(), kern.double()).float()
+    with torch.no_grad():
+        torch.testing.assert_close(sv_conv2d_planes(img, planes), want, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(sv_conv2d_planes(img, planes.contiguous()), want, rtol=1e-5, atol=1e-6)
+    got = sv_conv2d_planes(img.requires_grad_(), planes)
+    torch.testing.assert_close(got.detach(), want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("batched", [False, True], ids=["shared", "batched"])
+def test_planes_gradcheck(batched):
+    from torchsss.ops import sv_conv2d_planes
+
+    img = _rand(1, 2, 4, 5).requires_grad_()
+    planes = _rand(*((1,) if batched else ()), 9, 4, 5, seed=2).requires_grad_()
+    assert torch.autograd.gradcheck(sv_conv2d_planes, (img, planes))
+
+
+def test_planes_bad_inputs():
+    from torchsss.ops import sv_conv2d_planes
+
+    img = _rand(1, 2, 4, 5)
+    with pytest.raises(ValueError, match="planes: expected k\\*k taps with k odd"):
+        sv_conv2d_planes(img, _rand(8, 4, 5))
+    with pytest.raises(ValueError, match="planes: expected k\\*k taps with k odd"):
+        sv_conv2d_planes(img, _rand(4, 4, 5))  # k = 2 is even
+    with pytest.raises(ValueError, match="H=4, W=5"):
+        sv_conv2d_planes(img, _rand(9, 5, 4))
+    with pytest.raises(ValueError, match="B=1"):
+        sv_conv2d_planes(img, _rand(2, 9, 4, 5))
+    with pytest.raises(ValueError, match="planes: expected shape"):
+        sv_conv2d_planes(img, _rand(9, 4))
+    with pytest.raises(ValueError, match="image: expected shape"):
+        sv_conv2d_planes(img[0], _rand(9, 4, 5))
+    with pytest.raises(TypeError, match="planes"):
+        sv_conv2d_planes(img, torch.ones(9, 4, 5, dtype=torch.int64))

@@ -154,18 +154,24 @@ class LocalKernelGeometry(NamedTuple):
 
     Attributes:
         distance: :math:`(H, W, k, k)` mm, :math:`|x_o - x_s|` for receiver ``o = (y, x)`` and source
-            ``s = (y + i - k//2, x + j - k//2)``; 0 wherever ``area`` is 0.
+            ``s = (y + i - k//2, x + j - k//2)``; 0 wherever ``area`` is 0. Compact: :math:`(N, k, k)`, the
+            receivers ``index``.
         area: :math:`(H, W, k, k)` mm^2, the source texel's ``atlas.area``; 0 where the receiver or the source
-            is not valid or the source lies outside the image.
+            is not valid or the source lies outside the image. Compact: :math:`(N, k, k)`.
         kernel_size: ``k``.
+        index: None (full), or compact: :math:`(N,)` int64 flat texel ``y * W + x`` of each receiver (the
+            atlas's valid texels, ascending); every other receiver's kernel is 0.
+        shape: ``(H, W)`` of the atlas.
     """
 
     distance: Tensor
     area: Tensor
     kernel_size: int
+    index: Tensor | None = None
+    shape: tuple[int, int] | None = None
 
 
-def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeometry:
+def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7, *, compact: bool = False) -> LocalKernelGeometry:
     """Distances and source areas of the spatially varying local kernels (Lensch §5.3, gather form).
 
     The kernel of receiver texel ``o = (y, x)`` is ``area[y, x] * R_d(distance[y, x])`` and weights
@@ -175,15 +181,22 @@ def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeom
     and receivers: they are what lets a kernel read across a chart edge. Built from ``k^2`` shifted slices of
     the padded buffers (no loop over texels), in the atlas's dtype and device.
 
+    ``compact=True`` keeps only the receivers that have kernels, the valid texels (xatlas fills 36-52% of the
+    square): at atlas 512 and k = 11 the two full tensors take 242 MB, the compact ones about 110 MB.
+
     Args:
         atlas: The texture atlas; its ``padding`` should be at least ``k // 2`` (``build_atlas(..., kernel_size=k)``).
         kernel_size: Odd ``k`` in [1, 63]; Lensch uses 7.
+        compact: Return :math:`(N, k, k)` tensors over the valid receivers (``index``) instead of
+            :math:`(H, W, k, k)`.
 
     Returns:
-        :class:`LocalKernelGeometry` with ``distance`` and ``area`` of shape :math:`(H, W, k, k)`.
+        :class:`LocalKernelGeometry` with ``distance`` and ``area`` of shape :math:`(H, W, k, k)` (compact:
+        :math:`(N, k, k)` and ``index``).
 
     Raises:
-        TypeError: ``atlas`` is not an :class:`~torchsss.geometry.Atlas` or ``kernel_size`` not an int.
+        TypeError: ``atlas`` is not an :class:`~torchsss.geometry.Atlas`, ``kernel_size`` not an int or
+            ``compact`` not a bool.
         ValueError: ``kernel_size`` even or out of range.
 
     Examples:
@@ -194,9 +207,13 @@ def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeom
         ((64, 64, 3, 3), 3)
         >>> bool((geo.area[..., 1, 1] == atlas.area[0, 0] * atlas.valid_mask[0, 0]).all())  # centre tap: itself
         True
+        >>> small = local_kernel_geometry(atlas, 3, compact=True)
+        >>> bool((small.distance == geo.distance.reshape(-1, 3, 3)[small.index]).all())
+        True
     """
     atlas = _check_atlas(atlas)
     k = _check_kernel_size(kernel_size)
+    compact = _check_bool(compact, "compact")
     r = k // 2
     height, width = atlas.shape
     pos = atlas.position[0]  # (3, H, W)
@@ -205,6 +222,22 @@ def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeom
     pos_p = F.pad(pos, (r, r, r, r))
     area_p = F.pad(area, (r, r, r, r))
     valid_p = F.pad(valid.to(pos.dtype), (r, r, r, r)) > 0
+    if compact:
+        index = valid.reshape(-1).nonzero(as_tuple=True)[0]
+        wp = width + 2 * r
+        base = (index // width) * wp + index % width  # the window's top-left in the padded buffers
+        pos_f, area_f, valid_f = pos_p.reshape(3, -1), area_p.reshape(-1), valid_p.reshape(-1)
+        x_o = pos.reshape(3, -1)[:, index].T  # (N, 3)
+        distance = torch.zeros(index.numel(), k, k, dtype=pos.dtype, device=pos.device)
+        source_area = torch.zeros_like(distance)
+        for i in range(k):
+            for j in range(k):
+                src = base + (i * wp + j)
+                keep = valid_f[src]
+                d = _distance(x_o, pos_f[:, src].T)
+                distance[:, i, j] = torch.where(keep, d, torch.zeros_like(d))
+                source_area[:, i, j] = torch.where(keep, area_f[src], torch.zeros_like(d))
+        return LocalKernelGeometry(distance, source_area, k, index, (height, width))
     # written tap by tap into the outputs (a list of k^2 slices and a stack would hold both at once)
     distance = torch.zeros(height, width, k, k, dtype=pos.dtype, device=pos.device)
     source_area = torch.zeros(height, width, k, k, dtype=pos.dtype, device=pos.device)
@@ -214,7 +247,7 @@ def local_kernel_geometry(atlas: Atlas, kernel_size: int = 7) -> LocalKernelGeom
             d = _distance(pos.permute(1, 2, 0), pos_p[:, i:i + height, j:j + width].permute(1, 2, 0))
             distance[:, :, i, j] = torch.where(keep, d, torch.zeros_like(d))
             source_area[:, :, i, j] = torch.where(keep, area_p[i:i + height, j:j + width], torch.zeros_like(d))
-    return LocalKernelGeometry(distance, source_area, k)
+    return LocalKernelGeometry(distance, source_area, k, None, (height, width))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -565,35 +598,64 @@ def build_throughput(
     if radius < 0.5 * diagonal:
         # R_d decreases with r: every kept pair lies within ``radius`` (set by the largest vertex area), so a
         # k-d tree lists the candidates in O(nnz) instead of testing all N^2 pairs; the test below is the same.
-        pairs = torch.from_numpy(cKDTree(v.cpu().numpy()).query_pairs(radius, output_type="ndarray")).to(v.device)
-        self_pairs = torch.arange(n, device=v.device)
-        cand_r = torch.cat([pairs[:, 0], pairs[:, 1], self_pairs])
-        cand_c = torch.cat([pairs[:, 1], pairs[:, 0], self_pairs])
-        block = max(1, int(float(max_memory_mb) * 2**20 / (8.0 * (8 + 2 * channels))))
-        for lo in tqdm(range(0, cand_r.numel(), block), desc="throughput", unit="block", disable=not progress):
-            r_idx, c_idx = cand_r[lo:lo + block], cand_c[lo:lo + block]
+        # Blocks of consecutive source rows (about max_memory_mb of candidates each) against the whole mesh: the
+        # rows come out in order, so the entries are sorted block by block and written into the outputs without
+        # a global sort (the pairs of the whole mesh, both directions, and their sort peaked at about 600 MB on
+        # the default scene's 6.4M entries; now the outputs and one block's temporaries).
+        vn = v.cpu().numpy()
+        tree = cKDTree(vn)
+        counts = np.asarray(tree.query_ball_point(vn, radius, return_length=True), dtype=np.int64)
+        # candidates a block: the profile of one candidate holds about 2 channels x 8 float64 temporaries
+        budget = max(1, int(float(max_memory_mb) * 2**20 / (8.0 * (16 + 16 * channels))))
+        ends = np.searchsorted(np.cumsum(counts), np.arange(budget, int(counts.sum()) + budget, budget), "right")
+        bounds = sorted({0, n, *(int(e) for e in ends if 0 < e < n)})
+        dtype = mesh.vertices.dtype
+        # the outputs sized for every candidate (an upper bound on the kept entries) and filled block by block:
+        # per-block lists of kept entries interleaved with the blocks' temporaries fragmented the heap
+        cap = int(counts.sum())
+        cols_t = torch.empty(cap, dtype=torch.int64, device=v.device)
+        dist_t = torch.empty(cap, dtype=dtype, device=v.device)
+        at = 0
+        row_counts = torch.zeros(n, dtype=torch.int64, device=v.device)
+        cutoff64 = 0.0
+        for lo, hi in tqdm(list(itertools.pairwise(bounds)), desc="throughput", unit="block",
+                           disable=not progress):
+            if hi <= lo:
+                continue
+            cand = cKDTree(vn[lo:hi]).sparse_distance_matrix(tree, radius, output_type="ndarray")
+            r_idx = torch.from_numpy(cand["i"].astype(np.int64)).to(v.device) + lo
+            c_idx = torch.from_numpy(cand["j"].astype(np.int64)).to(v.device)
+            del cand
+            order = torch.argsort(r_idx * n + c_idx)
+            r_idx, c_idx = r_idx[order], c_idx[order]
             d = _distance(v[r_idx], v[c_idx])
             keep = va[r_idx] * _max_rd(d, prof) >= thr
             if zero_diagonal:
                 keep &= r_idx != c_idx
-            rows.append(r_idx[keep])
-            cols.append(c_idx[keep])
-            dists.append(d[keep])
-        order = torch.argsort(torch.cat(rows) * n + torch.cat(cols))
-        rows, cols, dists = [torch.cat(rows)[order]], [torch.cat(cols)[order]], [torch.cat(dists)[order]]
-    else:
-        all_cols = torch.arange(n, device=v.device)
-        for lo in tqdm(range(0, n, block_rows), desc="throughput", unit="block", disable=not progress):
-            hi = min(n, lo + block_rows)
-            d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
-            f = va[lo:hi, None] * _max_rd(d, prof)
-            keep = f >= thr
-            if zero_diagonal:
-                keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
-            r_idx, c_idx = keep.nonzero(as_tuple=True)
-            rows.append(r_idx + lo)
-            cols.append(c_idx)
-            dists.append(d[r_idx, c_idx])
+            if bool(keep.any()):
+                cutoff64 = max(cutoff64, float(d[keep].max()))
+            row_counts += torch.bincount(r_idx[keep], minlength=n)
+            kept = int(keep.sum())
+            cols_t[at:at + kept] = c_idx[keep]
+            dist_t[at:at + kept] = d[keep]
+            at += kept
+        if at < cap:
+            cols_t, dist_t = cols_t[:at].clone(), dist_t[:at].clone()
+        rows_t = torch.repeat_interleave(torch.arange(n, device=v.device), row_counts)
+        return Throughput(rows_t, cols_t, dist_t, mesh.vertex_areas.detach()[rows_t].to(dtype), n,
+                          threshold, relative, cutoff64, time.perf_counter() - start)
+    all_cols = torch.arange(n, device=v.device)
+    for lo in tqdm(range(0, n, block_rows), desc="throughput", unit="block", disable=not progress):
+        hi = min(n, lo + block_rows)
+        d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
+        f = va[lo:hi, None] * _max_rd(d, prof)
+        keep = f >= thr
+        if zero_diagonal:
+            keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
+        r_idx, c_idx = keep.nonzero(as_tuple=True)
+        rows.append(r_idx + lo)
+        cols.append(c_idx)
+        dists.append(d[r_idx, c_idx])
     rows_t = torch.cat(rows)
     cols_t = torch.cat(cols)
     dist_t = torch.cat(dists)
@@ -896,7 +958,8 @@ class BlendWeights(NamedTuple):
             (:math:`B^d_i = \\sum_{texels} w E`, scattered like the dual weights); 0 off chart texels.
         kernel_correction: :math:`(C, H, W, k, k)` to add to the gather-form kernels ``area * R_d(distance)`` of
             :func:`local_kernel_geometry`: minus the interpolated :math:`B^{g0} + B^d` response of the source
-            ``s = (y + i - k//2, x + j - k//2)`` at the receiver ``(y, x)``.
+            ``s = (y + i - k//2, x + j - k//2)`` at the receiver ``(y, x)``. With ``index``: :math:`(C, N, k, k)`,
+            the receivers of a compact :class:`LocalKernelGeometry`.
     """
 
     weights: Tensor
@@ -913,6 +976,7 @@ def blending_weights(
     relative: bool = True,
     chunk_texels: int = 1024,
     fit_radius: int | None = None,
+    index: Tensor | None = None,
     progress: bool = False,
 ) -> BlendWeights:
     """Blend the local kernels with the global vertex response (Lensch §5.4), per chart texel, per channel.
@@ -947,6 +1011,9 @@ def blending_weights(
         chunk_texels: Source texels per chunk (working memory ~ 60 kB each at k = 11).
         fit_radius: Fit the weights on the band of texels with ``k//2 < Chebyshev distance <= fit_radius``
             instead of Lensch's single ring (``None``: ``k//2 + 1``, the ring).
+        index: None, or the :math:`(N,)` receivers of a compact geometry (``local_kernel_geometry(...,
+            compact=True).index``, every valid texel among them): the correction is then :math:`(C, N, k, k)`,
+            never the full :math:`(C, H, W, k, k)` (363 MB at atlas 512 and k = 11).
         progress: Show a tqdm bar over the chunks.
 
     Returns:
@@ -954,7 +1021,8 @@ def blending_weights(
 
     Raises:
         TypeError: wrong argument types.
-        ValueError: bad kernel size, threshold, material or mismatched mesh and atlas.
+        ValueError: bad kernel size, threshold, material, mismatched mesh and atlas, or an ``index`` that misses a
+            valid texel.
 
     Examples:
         >>> from torchsss.geometry import build_atlas, sphere
@@ -1012,11 +1080,26 @@ def blending_weights(
     inner_at = (cheb <= r).nonzero(as_tuple=True)[0]  # row-major over the k x k window
 
     dtype = atlas.position.dtype
+    receivers = height * width
+    slot = None
+    if index is not None:
+        if not isinstance(index, Tensor) or index.dtype != torch.int64 or index.dim() != 1:
+            got = (f"{index.dtype} of shape {tuple(index.shape)}" if isinstance(index, Tensor)
+                   else type(index).__name__)
+            raise TypeError(f"index: expected a (N,) int64 tensor or None, got {got}")
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= receivers):
+            raise ValueError(f"index: expected flat texels in [0, {receivers}), got [{int(index.min())}, "
+                             f"{int(index.max())}]")
+        slot = torch.full((receivers,), -1, dtype=torch.int64, device=device)
+        slot[index.to(device)] = torch.arange(index.numel(), device=device)
+        if bool((slot[valid.nonzero(as_tuple=True)[0]] < 0).any()):
+            raise ValueError("index: expected every valid texel of the atlas among the receivers, some are missing")
+        receivers = index.numel()
     weights = torch.zeros(height * width, 3, channels, dtype=f64, device=device)
     # gather form: correction[c, y, x, i, j] = the impulse response of the source at (y + i - r, x + j - r) at offset
     # (r - i, r - j); each (receiver, tap) has exactly one source, so every chunk writes its sources' responses
     # straight into the output layout (no per-source scatter buffer)
-    correction = torch.zeros(channels, height * width * k * k, dtype=dtype, device=device)
+    correction = torch.zeros(channels, receivers * k * k, dtype=dtype, device=device)
     tap = (r - dy[inner_at]) * k + (r - dx[inner_at])  # (k*k,) the receiver's tap that reads offset (dy, dx)
     eye = torch.eye(3, dtype=f64, device=device)
     for lo in tqdm(range(0, sources.numel(), chunk_texels), desc="blending", unit="chunk", disable=not progress):
@@ -1052,9 +1135,12 @@ def blending_weights(
         weights[o] = w
         b_d = hat[:, inner_at] @ w  # (M, k*k, C)
         hit = ok[:, inner_at]  # (M, k*k): valid receivers inside the image
-        flat = (s[:, inner_at] * (k * k) + tap)[hit]
+        rec = s[:, inner_at] if slot is None else slot[s[:, inner_at]]
+        flat = (rec * (k * k) + tap)[hit]
         correction[:, flat] = (-(b_g0[:, inner_at] + b_d))[hit].T.to(dtype)
     weights_img = weights.view(height, width, 3, channels).permute(3, 2, 0, 1).to(dtype).contiguous()
+    if slot is not None:
+        return BlendWeights(weights_img, correction.view(channels, receivers, k, k))
     return BlendWeights(weights_img, correction.view(channels, height, width, k, k))
 
 

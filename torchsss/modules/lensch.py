@@ -19,13 +19,22 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
-from torchsss.geometry.lensch import HatQuadrature, LocalKernelGeometry, Throughput, VertexWeights
+from torchsss.geometry.lensch import (
+    HatQuadrature,
+    LocalKernelGeometry,
+    Throughput,
+    VertexWeights,
+    _check_atlas,
+    _check_kernel_size,
+    _distance,
+)
 from torchsss.modules.cache import ValueCache, material_key
 from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
-from torchsss.ops.sv_conv import sv_conv2d
+from torchsss.ops.sv_conv import sv_conv2d_planes
 from torchsss.physics.fresnel import check_fresnel, transmittance
 
 __all__ = ["GlobalResponse", "IrradianceAtlas", "LenschTranslucency", "LocalResponse"]
@@ -50,11 +59,15 @@ def _disk_integral(material: nn.Module, area: Tensor, scale: Tensor | None = Non
     return cumulative(radius * md) / (md * md)
 
 
-def _window_gather(image: Tensor, k: int) -> Tensor:
-    """(1, 1, H, W) -> (H, W, k, k): the values at the sources of every receiver's window (0 outside)."""
-    h, w = image.shape[-2:]
-    cols = torch.nn.functional.unfold(image, k, padding=k // 2)  # (1, k*k, H*W)
-    return cols[0].transpose(0, 1).reshape(h, w, k, k)
+def _window_at(image: Tensor, k: int, index: Tensor) -> Tensor:
+    """(1, 1, H, W) -> (N, k, k): the values at the sources of the windows of receivers ``index`` (0 outside)."""
+    w = image.shape[-1]
+    r = k // 2
+    wp = w + 2 * r
+    flat = F.pad(image[0, 0], (r, r, r, r)).reshape(-1)
+    base = (index // w) * wp + index % w  # the window's top-left in the padded image
+    cols = torch.arange(k, device=index.device)
+    return torch.stack([flat[base[:, None] + (i * wp + cols)] for i in range(k)], 1)  # a kernel row at a time
 
 
 class IrradianceAtlas(nn.Module):
@@ -130,101 +143,249 @@ class IrradianceAtlas(nn.Module):
 class LocalResponse(nn.Module):
     """Local response :math:`B^l(o) = \\sum_s K_o(s) E(s)` with :math:`K_o(s) = A_s M_i R_d(|x_o - x_s| M_d)`.
 
+    The kernels are held for the receivers that have them only (the atlas's valid texels, 36-52% of the square:
+    :class:`~torchsss.geometry.lensch.LocalKernelGeometry`'s compact form; a full geometry is compacted to the
+    receivers with a source or a correction) and evaluated into the one full tap-major copy that
+    :func:`~torchsss.ops.sv_conv2d_planes` reads, cached while the material is unchanged. At atlas 512 and
+    k = 11 on the default scene that is 634 MB where full buffers, full kernels and the convolution's permuted
+    copy of them took 1.33 GB.
+
     Args:
-        geometry: :class:`~torchsss.geometry.lensch.LocalKernelGeometry` (distances and source areas).
+        geometry: :class:`~torchsss.geometry.lensch.LocalKernelGeometry` (distances and source areas), full or
+            compact.
         material: a module mapping distances :math:`(\\ldots, 1)` mm to :math:`(\\ldots, C)` mm^-2 (e.g.
             :class:`~torchsss.DipoleMaterial`); its parameters receive gradients.
-        correction: optional :math:`(C, H, W, k, k)` kernel correction added after evaluation (blending).
+        correction: optional kernel correction added after evaluation (blending): :math:`(C, H, W, k, k)`, or
+            :math:`(C, N, k, k)` on the receivers of a compact ``geometry``.
         distance_scale: optional :math:`(1, 1, H, W)` distance multiplier atlas :math:`M_d` (> 0).
         irradiance_scale: optional :math:`(1, C, H, W)` or :math:`(1, 1, H, W)` irradiance modulation :math:`M_i`.
         mask: optional :math:`(1, 1, H, W)` translucency mask (1 translucent, 0 not).
         self_term: ``"disk"`` (default) replaces the centre tap :math:`A_o R_d(0)` by the closed-form integral
             of :math:`R_d` over a disk of the texel's area (needs a dipole material; finite and -> R_total when
             the profile is far narrower than a texel); ``"point"`` keeps Lensch's point sample.
-        copy: copy ``geometry`` and ``correction`` into the buffers (default); ``False`` takes them as they are
-            (no second copy of the :math:`(H, W, k, k)` tensors; the caller must not change them afterwards).
+        copy: copy a compact ``geometry`` and ``correction`` into the buffers (default); ``False`` takes them as
+            they are (no second copy; the caller must not change them afterwards). A full geometry is always
+            compacted into new buffers.
     """
+
+    #: Bytes of profile temporaries per block of receivers in the eager evaluation of :meth:`planes`.
+    block_bytes = 8 << 20
 
     def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
                  distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
                  mask: Tensor | None = None, self_term: str = "disk", copy: bool = True):
         super().__init__()
-        dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k")
         if not isinstance(copy, bool):
             raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
-        self.kernel_size = int(geometry.kernel_size)
+        k = self.kernel_size = int(geometry.kernel_size)
         self.material = material
-        dist = geometry.distance.detach().clone() if copy else geometry.distance.detach()
-        area = geometry.area.detach().clone() if copy else geometry.area.detach()
-        if distance_scale is not None:
-            check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
-            dist = dist * _window_gather(distance_scale.to(dist.dtype), self.kernel_size)
-        if mask is not None:
-            check_shape(mask, "mask", "1,1,H,W", H=dims["H"], W=dims["W"])
-            m = mask.to(area.dtype)
-            area = area * _window_gather(m, self.kernel_size) * m[0, 0, :, :, None, None]
+        if geometry.index is None:
+            dims = check_shape(geometry.distance, "geometry.distance", "H,W,k,k", k=k)
+            h, w = dims["H"], dims["W"]
+            live = (geometry.area != 0).flatten(2).any(-1)
+            if correction is not None:
+                check_shape(correction, "correction", "C,H,W,k,k", H=h, W=w, k=k)
+                live = live | (correction != 0).flatten(3).any(-1).any(0)
+            index = live.reshape(-1).nonzero(as_tuple=True)[0]
+            dist = geometry.distance.detach().reshape(h * w, k, k)[index]
+            area = geometry.area.detach().reshape(h * w, k, k)[index]
+            if correction is not None:
+                correction = correction.detach().reshape(correction.shape[0], h * w, k, k)[:, index]
+        else:
+            if geometry.shape is None:
+                raise ValueError("geometry: a compact LocalKernelGeometry (index given) needs its shape (H, W)")
+            h, w = (int(v) for v in geometry.shape)
+            dims = check_shape(geometry.distance, "geometry.distance", "N,k,k", k=k)
+            check_shape(geometry.area, "geometry.area", "N,k,k", N=dims["N"], k=k)
+            check_shape(geometry.index, "geometry.index", "N", N=dims["N"])
+            index = geometry.index
+            dist = geometry.distance.detach().clone() if copy else geometry.distance.detach()
+            area = geometry.area.detach().clone() if copy else geometry.area.detach()
+            if correction is not None:
+                check_shape(correction, "correction", "C,N,k,k", N=dims["N"], k=k)
+                correction = correction.detach().clone() if copy else correction.detach()
+        self._finish(index, h, w, dist, area, correction, distance_scale, irradiance_scale, mask, self_term)
+
+    def _finish(self, index: Tensor, h: int, w: int, dist: Tensor | None, area: Tensor | None,
+                correction: Tensor | None, distance_scale: Tensor | None, irradiance_scale: Tensor | None,
+                mask: Tensor | None, self_term: str, sources: dict | None = None) -> None:
+        """The buffers of both constructions: stored taps (``dist``/``area``) or ``sources`` maps to derive them."""
+        k = self.kernel_size
+        self.height, self.width = int(h), int(w)
         if self_term not in ("disk", "point"):
             raise ValueError(f"self_term: expected 'disk' or 'point', got {self_term!r}")
         self.self_term = self_term
-        c = self.kernel_size // 2
-        self_scale = None if distance_scale is None else distance_scale[0, 0].to(dist.dtype).clone()
+        if distance_scale is not None:
+            check_shape(distance_scale, "distance_scale", "1,1,H,W", H=h, W=w)
+        if mask is not None:
+            check_shape(mask, "mask", "1,1,H,W", H=h, W=w)
+        if irradiance_scale is not None:
+            check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=h, W=w)
+        # where each texel's kernel sits in the compact list (N: none; the planes read a zero column there)
+        slot = torch.full((h * w,), index.numel(), dtype=torch.int64, device=index.device)
+        slot[index] = torch.arange(index.numel(), device=index.device)
+        self.register_buffer("index", index)
+        self.register_buffer("slot", slot, persistent=False)
+        r = k // 2
+        if sources is None:
+            if distance_scale is not None:
+                dist = dist * _window_at(distance_scale.to(dist.dtype), k, index)
+            if mask is not None:
+                m = mask.to(area.dtype)
+                area = area * _window_at(m, k, index) * m.reshape(-1)[index][:, None, None]
+            dtype = dist.dtype
+            self_area = area[:, r, r].clone()
+            for name in ("src_position", "src_area", "src_scale", "rec_position", "rec_mask", "offsets"):
+                self.register_buffer(name, None, persistent=False)
+        else:
+            dtype = sources["position"].dtype
+            pad = (r, r, r, r)
+            self.register_buffer("src_position", F.pad(sources["position"], pad).reshape(3, -1), persistent=False)
+            # the source area, 0 where the source is not valid (as local_kernel_geometry's taps)
+            src_area = F.pad(sources["area"] * sources["valid"], pad).reshape(-1)
+            rec_mask = None
+            if mask is not None:
+                m = mask[0, 0].to(dtype)
+                src_area = src_area * F.pad(m, pad).reshape(-1)
+                rec_mask = m.reshape(-1)[index].clone()
+            self.register_buffer("src_area", src_area, persistent=False)
+            self.register_buffer("src_scale", None if distance_scale is None else
+                                 F.pad(distance_scale[0, 0].to(dtype), pad).reshape(-1), persistent=False)
+            self.register_buffer("rec_position", sources["position"].reshape(3, -1)[:, index].T.contiguous(),
+                                 persistent=False)
+            self.register_buffer("rec_mask", rec_mask, persistent=False)
+            wp = w + 2 * r
+            ar = torch.arange(k, device=index.device)
+            self.register_buffer("offsets", (ar[:, None] * wp + ar[None, :]).reshape(-1), persistent=False)
+            self.register_buffer("base", (index // w) * wp + index % w, persistent=False)
+            centre = self.base + (r * wp + r)
+            self_area = src_area[centre] * (1.0 if rec_mask is None else rec_mask)
         self.register_buffer("distance", dist)
         self.register_buffer("area", area)
-        self.register_buffer("self_scale", self_scale)
-        self.register_buffer("self_area", area[:, :, c, c].clone())
-        if correction is not None:
-            correction = correction.detach().clone() if copy else correction.detach()
+        self.register_buffer("self_scale", None if distance_scale is None else
+                             distance_scale.reshape(-1)[index].to(dtype).clone())
+        self.register_buffer("self_area", self_area)
         self.register_buffer("correction", correction)
         self._cache = ValueCache()
-        if irradiance_scale is not None:
-            check_shape(irradiance_scale, "irradiance_scale", "1,C,H,W", H=dims["H"], W=dims["W"])
         self.register_buffer("irradiance_scale", None if irradiance_scale is None else irradiance_scale.clone())
 
-    def kernels(self) -> Tensor:
-        """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (``torchsss.ops.sv_conv2d``).
+    @classmethod
+    def from_atlas(cls, atlas, kernel_size: int, material: nn.Module, *, correction: Tensor | None = None,
+                   distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
+                   mask: Tensor | None = None, self_term: str = "disk") -> LocalResponse:
+        """The local response of ``atlas``'s valid texels with taps derived from the atlas's maps, not stored.
 
-        Outside autograd and tracing they are evaluated in blocks of atlas rows (about 32 MB of profile
-        temporaries at a time instead of several copies of the whole :math:`(H, W, k, k, C)` tensor: 3.4 GB at
-        atlas 512 and k = 11); under autograd or export in one expression.
+        The same kernels as ``LocalResponse(local_kernel_geometry(atlas, k, compact=True), ...)``, bit for bit
+        (the same distance formula on the same positions), but the :math:`(N, k, k)` distances and areas (234 MB
+        at atlas 1024 and k = 7) are not kept: every evaluation of the kernels (once per material) gathers the
+        taps' positions and areas from the atlas's padded maps, block by block.
+
+        Args:
+            atlas: The :class:`~torchsss.geometry.Atlas` (its ``padding`` at least ``k // 2``).
+            kernel_size: Odd ``k``.
+            material: The profile module, as the constructor's.
+            correction: Optional :math:`(C, N, k, k)` on the valid texels in ascending order (``blending_weights(...,
+                index=...)``).
+            distance_scale: Optional :math:`(1, 1, H, W)` :math:`M_d`, as the constructor's.
+            irradiance_scale: Optional :math:`M_i`, as the constructor's.
+            mask: Optional :math:`(1, 1, H, W)` translucency mask, as the constructor's.
+            self_term: ``"disk"`` or ``"point"``, as the constructor's.
+
+        Returns:
+            The module; ``distance`` and ``area`` are None (derived when needed).
+
+        Examples:
+            >>> from torchsss.geometry import build_atlas, sphere
+            >>> from torchsss.geometry.lensch import local_kernel_geometry
+            >>> from torchsss.modules import DipoleMaterial
+            >>> atlas = build_atlas(sphere(5.0, 2), 32, kernel_size=3)
+            >>> mat = DipoleMaterial.from_preset("marble")
+            >>> derived = LocalResponse.from_atlas(atlas, 3, mat)
+            >>> stored = LocalResponse(local_kernel_geometry(atlas, 3, compact=True), mat)
+            >>> with torch.no_grad():
+            ...     bool((derived.planes() == stored.planes()).all()), derived.distance is None
+            (True, True)
         """
+        empty = _check_atlas(atlas)
+        k = _check_kernel_size(kernel_size)
+        self = cls.__new__(cls)
+        nn.Module.__init__(self)
+        self.kernel_size = k
+        self.material = material
+        h, w = empty.shape
+        valid = empty.valid_mask[0, 0]
+        index = valid.reshape(-1).nonzero(as_tuple=True)[0]
+        if correction is not None:
+            check_shape(correction, "correction", "C,N,k,k", N=index.numel(), k=k)
+            correction = correction.detach()
+        sources = {"position": empty.position[0].detach(), "area": empty.area[0, 0].detach(),
+                   "valid": valid.to(empty.position.dtype)}
+        self._finish(index, h, w, None, None, correction, distance_scale, irradiance_scale, mask, self_term,
+                     sources=sources)
+        return self
+
+    def _taps(self, lo: int, hi: int) -> tuple[Tensor, Tensor]:
+        """Distances (M_d applied) and source areas (mask applied) of receivers ``lo:hi``: :math:`(n, k, k)` each."""
+        k = self.kernel_size
+        if self.src_position is None:
+            return self.distance[lo:hi], self.area[lo:hi]
+        idx = self.base[lo:hi, None] + self.offsets  # (n, k*k) in the padded maps
+        src = self.src_position[:, idx].permute(1, 2, 0)  # (n, k*k, 3)
+        d = _distance(self.rec_position[lo:hi, None, :], src)
+        area = self.src_area[idx]
+        d = torch.where(area != 0, d, torch.zeros_like(d))
+        if self.src_scale is not None:
+            d = d * self.src_scale[idx]
+        if self.rec_mask is not None:
+            area = area * self.rec_mask[lo:hi, None]
+        return d.reshape(-1, k, k), area.reshape(-1, k, k)
+
+    def planes(self) -> Tensor:
+        """Per-channel kernels in tap-major layout :math:`(C, k^2, H, W)` (:func:`~torchsss.ops.sv_conv2d_planes`).
+
+        Outside autograd and tracing the compact kernels are evaluated in blocks of receivers (about 32 MB of
+        profile temporaries at a time) and written into the planes; under autograd or export in one expression
+        and gathered into place (a zero column for the receivers without a kernel).
+        """
+        k2 = self.kernel_size ** 2
+        n = self.index.shape[0]
         if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
                 torch.onnx.is_in_onnx_export():
-            return self._kernel_rows(0, self.distance.shape[0])
-        height, width, k, _ = self.distance.shape
-        per_row = width * k * k * 4 * self.distance.element_size()  # a row of (W, k, k, C ~ 4) temporaries
-        block = max(1, (32 << 20) // per_row)
+            comp = self._kernel_rows(0, n)
+            c = comp.shape[0]
+            cols = torch.cat([comp.reshape(c, n, k2), comp.new_zeros(c, 1, k2)], 1).transpose(1, 2)  # (C, k2, N+1)
+            return cols.index_select(2, self.slot).reshape(c, k2, self.height, self.width)
+        block = max(1, self.block_bytes // (k2 * 4 * self.self_area.element_size()))
         out = None
-        for lo in range(0, height, block):
-            rows = self._kernel_rows(lo, min(height, lo + block), compact=True)
+        for lo in range(0, max(n, 1), block):
+            rows = self._kernel_rows(lo, min(n, lo + block))
+            c = rows.shape[0]
             if out is None:
-                out = rows.new_empty((rows.shape[0], height, *rows.shape[2:]))
-            out[:, lo:lo + block] = rows
-        return out
+                out = rows.new_zeros(c, k2, self.height * self.width)
+            out[:, :, self.index[lo:lo + block]] = rows.reshape(c, -1, k2).transpose(1, 2)
+        return out.view(-1, k2, self.height, self.width)
 
-    def _kernel_rows(self, lo: int, hi: int, compact: bool = False) -> Tensor:
-        """:meth:`kernels` for the receiver rows ``lo:hi``: :math:`(C, hi - lo, W, k, k)`.
+    def kernels(self) -> Tensor:
+        """Per-channel kernels :math:`(C, H, W, k, k)` in gather form (:func:`~torchsss.ops.sv_conv2d`).
 
-        ``compact`` (eager, no autograd): the profile is evaluated only for receivers with a source in their window
-        (about the atlas utilisation, 45% of the texels); the others' kernels are zero either way.
+        The layout of :meth:`planes` turned around (a copy: for tests and inspection; frames use the planes).
         """
-        area = self.area[lo:hi]
-        if compact:
-            live = (area != 0).flatten(2).any(-1)  # (h, W)
-            dist = self.distance[lo:hi][live].unsqueeze(-1)  # (n, k, k, 1)
-            rd_live = self.material(dist)
-            rd = rd_live.new_zeros((*area.shape, rd_live.shape[-1]))
-            rd[live] = rd_live
-        else:
-            rd = self.material(self.distance[lo:hi].unsqueeze(-1))  # (h, W, k, k, C)
-        k = area.unsqueeze(-1) * rd
+        k = self.kernel_size
+        p = self.planes()
+        return p.reshape(p.shape[0], k, k, self.height, self.width).permute(0, 3, 4, 1, 2).contiguous()
+
+    def _kernel_rows(self, lo: int, hi: int) -> Tensor:
+        """The compact kernels of receivers ``index[lo:hi]``: :math:`(C, hi - lo, k, k)`."""
+        dist, area = self._taps(lo, hi)
+        k = area.unsqueeze(-1) * self.material(dist.unsqueeze(-1))  # (n, k, k, C)
         scale = None if self.self_scale is None else self.self_scale[lo:hi]
         disk = _disk_integral(self.material, self.self_area[lo:hi], scale) if self.self_term == "disk" else None
         if disk is not None:
             c = self.kernel_size // 2
             centre = torch.zeros_like(area)
-            centre[:, :, c, c] = 1.0
-            k = k + centre.unsqueeze(-1) * (disk - k[:, :, c, c]).unsqueeze(2).unsqueeze(2)
-        k = k.permute(4, 0, 1, 2, 3)
+            centre[:, c, c] = 1.0
+            k = k + centre.unsqueeze(-1) * (disk - k[:, c, c]).unsqueeze(1).unsqueeze(1)
+        k = k.permute(3, 0, 1, 2)
         if self.correction is not None:
             k = k + self.correction[:, lo:hi]
         return k
@@ -239,8 +400,8 @@ class LocalResponse(nn.Module):
         check_finite(irradiance, "irradiance")
         e = irradiance if self.irradiance_scale is None else irradiance * self.irradiance_scale
         key = material_key(self.material)
-        k = self._cache.get(None if key is None else (*key, self.distance.device), self.kernels)
-        out = sv_conv2d(e.transpose(0, 1), k)  # channels as the kernel batch, the batch as channels
+        planes = self._cache.get(None if key is None else (*key, self.index.device), self.planes)
+        out = sv_conv2d_planes(e.transpose(0, 1), planes)  # channels as the kernel batch, the batch as channels
         return out.transpose(0, 1)
 
 
@@ -261,11 +422,17 @@ class GlobalResponse(nn.Module):
             integrated over the source's hat (its moment rule, and the near entries, the self entries among them,
             term by term, :math:`F_{ij} = \\sum_t w_t R_d(d_t M_{d,i})`) instead of sampled at the source vertex
             (and the self entries' disk integral); see :func:`~torchsss.geometry.lensch.hat_quadrature`.
+        copy: copy the throughput's distances and source areas into the buffers (default); ``False`` takes them
+            as they are (the caller must not change them afterwards: :func:`~torchsss.pipelines.build_lensch`
+            hands its throughput over).
     """
 
     def __init__(self, weights: VertexWeights, throughput: Throughput, material: nn.Module, valid: Tensor, *,
-                 distance_scale: Tensor | None = None, method: str = "auto", hat: HatQuadrature | None = None):
+                 distance_scale: Tensor | None = None, method: str = "auto", hat: HatQuadrature | None = None,
+                 copy: bool = True):
         super().__init__()
+        if not isinstance(copy, bool):
+            raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
         dims = check_shape(weights.vertex_ids, "weights.vertex_ids", "1,3,H,W")
         check_shape(valid, "valid", "1,1,H,W", H=dims["H"], W=dims["W"])
         self.material = material
@@ -275,7 +442,7 @@ class GlobalResponse(nn.Module):
         self.register_buffer("dual", weights.dual.reshape(1, 1, -1).clone(), persistent=False)
         self.register_buffer("bary", weights.bary.clone(), persistent=False)
         self.register_buffer("valid", valid.to(weights.bary.dtype), persistent=False)
-        dist = throughput.distance.clone()
+        dist = throughput.distance.clone() if copy else throughput.distance
         vertex_md = None
         if distance_scale is not None:
             check_shape(distance_scale, "distance_scale", "1,1,H,W", H=dims["H"], W=dims["W"])
@@ -317,7 +484,7 @@ class GlobalResponse(nn.Module):
         self.register_buffer("hat_distance", None if hat is None else hd, persistent=False)
         self.register_buffer("hat_weight", None if hat is None else hat.weight.to(dist.dtype).clone(),
                              persistent=False)
-        self.register_buffer("source_area", throughput.source_area.clone())
+        self.register_buffer("source_area", throughput.source_area.clone() if copy else throughput.source_area)
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
         # not per nonzero: on 6M nonzeros the closed-form cumulative for all of them took 8 s of a first frame)
         self.register_buffer("diagonal_index", (throughput.rows == throughput.cols).nonzero()[:, 0],
@@ -351,11 +518,15 @@ class GlobalResponse(nn.Module):
         if self.hat_entries is not None:
             vals = self._blocks(self._moment_rule, self.distance.shape[0])
             return vals.index_copy(0, self.hat_entries, self.hat_values(vals.shape[-1], vals.dtype))
-        vals = self.source_area.unsqueeze(-1) * self.material(self.distance.unsqueeze(-1))
+        vals = self._blocks(self._sampled, self.distance.shape[0])
         disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
         if disk is None:
             return vals
         return vals.index_copy(0, self.diagonal_index, disk)
+
+    def _sampled(self, lo: int, hi: int) -> Tensor:
+        """The entries ``lo:hi`` sampled at the source vertex, :math:`A_i/3\\, R_d(d_{ij})`: :math:`(hi - lo, C)`."""
+        return self.source_area[lo:hi].unsqueeze(-1) * self.material(self.distance[lo:hi].unsqueeze(-1))
 
     def _moment_rule(self, lo: int, hi: int) -> Tensor:
         """The moment rule of the entries ``lo:hi``, :math:`(hi - lo, C)`.
@@ -376,8 +547,15 @@ class GlobalResponse(nn.Module):
                 torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
             return fn(0, n)
         block = 1 << 20
-        parts = [fn(lo, min(n, lo + block)) for lo in range(0, n, block)]
-        return torch.cat(parts) if len(parts) != 1 else parts[0]
+        out = None
+        for lo in range(0, n, block):  # written into one output (a list and a cat would hold both at once)
+            part = fn(lo, min(n, lo + block))
+            if out is None:
+                if part.shape[0] == n:
+                    return part
+                out = part.new_empty((n, *part.shape[1:]))
+            out[lo:lo + part.shape[0]] = part
+        return fn(0, 0) if out is None else out
 
     def hat_values(self, channels: int, dtype: torch.dtype) -> Tensor:
         """:math:`(E, C)` the near entries of the hat quadrature, :math:`\\sum_t w_t R_d(d_t)`.
@@ -484,7 +662,7 @@ class LenschTranslucency(nn.Module):
                 :func:`torchsss.set_validation`).
         """
         check_tensor(irradiance, "irradiance")
-        h, w = self.local.distance.shape[:2]
+        h, w = self.local.height, self.local.width
         check_shape(irradiance, "irradiance", "B,C,H,W", H=h, W=w)
         check_finite(irradiance, "irradiance")
         g = self.global_response

@@ -7,10 +7,10 @@ from torchsss.ops.reference import pairwise_distance, reference_radiosity
 from torchsss.ops.refraction import reflect, refract
 from torchsss.ops.sparse import SparsePattern, sparse_apply_t, sparse_pattern
 from torchsss.ops.splat import splat_radiosity, splat_window_size
-from torchsss.ops.sv_conv import sv_conv2d, sv_conv2d_reference
+from torchsss.ops.sv_conv import sv_conv2d, sv_conv2d_planes, sv_conv2d_reference
 
 __all__ = ["pairwise_distance", "reference_radiosity"]
-__all__ += ["SparsePattern", "sparse_apply_t", "sparse_pattern", "sv_conv2d", "sv_conv2d_reference"]
+__all__ += ["SparsePattern", "sparse_apply_t", "sparse_pattern", "sv_conv2d", "sv_conv2d_planes", "sv_conv2d_reference"]
 __all__ += ["icdf_sample", "icdf_sample_reference", "pyramid_levels", "sum_pyramid"]
 __all__ += ["lookup_positions", "newton_raphson_intersect", "reflect", "refract"]
 __all__ += ["default_kernel_size", "splat_caustics", "splat_radiosity", "splat_window_size"]

@@ -7,6 +7,9 @@ sends to ``(y, x)``, so the area of the *source* texel belongs inside the kernel
 :func:`sv_conv2d` is the fast path (pad once, then :math:`k^2` shifted-slice multiply-accumulates, compiled
 into one loop over the texels for inference; it exports to ONNX at opset 18 and runs there exactly);
 :func:`sv_conv2d_reference` is the readable ``unfold`` + ``einsum`` formulation it is tested against.
+:func:`sv_conv2d_planes` takes the kernels already in the tap-major layout the fast path computes on
+(:math:`(k^2, H, W)`): a caller that builds its kernels once (Lensch's local response) builds them in that layout
+and holds one copy instead of two.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from torch import Tensor
 from torchsss._checks import check_devices, compute_dtype, is_tracing
 from torchsss.ops import fused
 
-__all__ = ["sv_conv2d", "sv_conv2d_reference"]
+__all__ = ["sv_conv2d", "sv_conv2d_planes", "sv_conv2d_reference"]
 
 #: Bytes of kernels permuted per band of rows in the inference path (about an L2 cache).
 _BAND_BYTES = 2 << 20
@@ -156,25 +159,32 @@ def sv_conv2d_planes_eager(xp: Tensor, planes: Tensor, threads: int) -> Tensor:
 
 def _sv_conv2d_fused(x: Tensor, kern: Tensor, kernels: Tensor, k: int) -> Tensor | None:
     """The compiled inference path, or None where :func:`torchsss.ops.fused.use_compiled` says no."""
-    b, c, h, w = x.shape
+    b, _, h, w = x.shape
     batched = kern.dim() == 5
+    n = b if batched else 1
+    # the kernel planes (one permuting copy, 60 ms at 512^2 and k = 7) are kept while `kernels` lives unchanged:
+    # Lensch's kernels are built once and applied to every frame
+    return _fused_planes(x, lambda: fused.derived(("sv_conv2d.planes", kern.dtype), (kernels,),
+                                                  lambda: _planes(kern, k).reshape(n, k * k, h, w)), k, batched, kern)
+
+
+def _fused_planes(x: Tensor, planes, k: int, batched: bool, kern: Tensor) -> Tensor | None:
+    """The compiled loop on ``planes()`` :math:`(N, k^2, H, W)` (a callable: made only when the loop runs)."""
+    b, c, h, w = x.shape
     n, g = (b, c) if batched else (1, b * c)
     threads = torch.get_num_threads()
     variant = (x.device.type, x.dtype, n, g, h, w, k, threads)
     work = float(n) * g * h * w * k * k / _MACS_PER_WORK  # the frames of a variant add up (ski rental)
     if x.numel() == 0 or not fused.use_compiled("sv_conv2d", variant, work, (x, kern)):
         return None
-    # the kernel planes (one permuting copy, 60 ms at 512^2 and k = 7) are kept while `kernels` lives unchanged:
-    # Lensch's kernels are built once and applied to every frame
-    planes = fused.derived(("sv_conv2d.planes", kern.dtype), (kernels,),
-                           lambda: _planes(kern, k).reshape(n, k * k, h, w))
+    pl = planes()
     p = k // 2
     xs = x if batched else x.reshape(1, g, h, w)
     kernel = fused._compiled("sv_conv2d", sv_conv2d_planes_eager)
     outs = []
     for g0 in range(0, g, _GROUP):  # F.pad makes each group a fresh contiguous tensor (the graph guards strides)
         xp = F.pad(xs[:, g0:g0 + _GROUP], (p, p, p, p))
-        outs.append(fused._call(kernel, variant, xp, planes, threads))
+        outs.append(fused._call(kernel, variant, xp, pl, threads))
     out = outs[0] if len(outs) == 1 else torch.cat(outs, 1)
     return out.reshape(b, c, h, w)
 
@@ -190,10 +200,14 @@ def _planes(kern: Tensor, k: int) -> Tensor:
 
 def _sv_conv2d_functional(x: Tensor, kern: Tensor, k: int) -> Tensor:
     """Out-of-place pad + k*k shifted slices over the whole image: autograd- and export-friendly."""
+    return _planes_functional(x, _planes(kern, k), k)
+
+
+def _planes_functional(x: Tensor, planes: Tensor, k: int) -> Tensor:
+    """:func:`_sv_conv2d_functional` on planes ``(k*k, H, W)`` or ``(B, k*k, 1, H, W)``."""
     h, w = x.shape[-2:]
     p = k // 2
-    planes = _planes(kern, k)
-    at = (lambda t: planes[:, t]) if kern.dim() == 5 else (lambda t: planes[t])
+    at = (lambda t: planes[:, t]) if planes.dim() == 5 else (lambda t: planes[t])
     xp = F.pad(x, (p, p, p, p)) if p > 0 else x
     out = at(0) * xp[:, :, 0:h, 0:w]
     for t in range(1, k * k):
@@ -226,6 +240,82 @@ def _sv_conv2d_tiled(x: Tensor, kern: Tensor, k: int) -> Tensor:
         for t in range(1, kk):
             i, j = divmod(t, k)
             o.addcmul_(at(t), xp[:, :, y0 + i:y1 + i, j:j + w])
+    return out
+
+
+def _check_planes(image: object, planes: object) -> tuple[int, bool]:
+    """Validate ``image``/``planes`` of :func:`sv_conv2d_planes`; return ``(k, batched)``."""
+    check_devices({"image": image, "planes": planes}, floating=True)
+    if image.dim() != 4:
+        raise ValueError(f"image: expected shape (B, C, H, W) (4 dims), got {tuple(image.shape)}")
+    b, _, h, w = image.shape
+    if planes.dim() not in (3, 4):
+        raise ValueError(f"planes: expected shape (k*k, H, W) or (B, k*k, H, W), got {tuple(planes.shape)}")
+    batched = planes.dim() == 4
+    kk = planes.shape[-3]
+    k = math.isqrt(kk)
+    if k * k != kk or k % 2 == 0:
+        raise ValueError(f"planes: expected k*k taps with k odd (dim -3), got {kk} in {tuple(planes.shape)}")
+    if tuple(planes.shape[-2:]) != (h, w):
+        raise ValueError(f"planes: expected shape (..., k*k, H, W) with H={h}, W={w} (the image's), "
+                         f"got {tuple(planes.shape)}")
+    if batched and planes.shape[0] != b:
+        raise ValueError(f"planes: expected shape (B, k*k, H, W) with B={b} (the image's batch), "
+                         f"got {tuple(planes.shape)}")
+    return k, batched
+
+
+def sv_conv2d_planes(image: Tensor, planes: Tensor) -> Tensor:
+    """:func:`sv_conv2d` with the kernels in tap-major layout: ``planes[t, y, x] = kernels[y, x, t // k, t % k]``.
+
+    The layout every path of :func:`sv_conv2d` computes on, taken as given: no permuting copy is made or kept.
+    For kernels built once and applied every frame (Lensch's local response at atlas 512 and k = 11 holds
+    363 MB of kernels: :func:`sv_conv2d` keeps a second, permuted copy of them for its compiled loop).
+    Same paths (compiled, eager, functional), same result, same gradients.
+
+    Args:
+        image: :math:`(B, C, H, W)` image or atlas.
+        planes: :math:`(k^2, H, W)` shared by the batch or :math:`(B, k^2, H, W)` one set per batch element; tap
+            ``t = i k + j`` weights the source at ``(y + i - k//2, x + j - k//2)``, ``k`` odd.
+
+    Returns:
+        :math:`(B, C, H, W)` in the promoted dtype of the inputs.
+
+    Raises:
+        TypeError: a non-tensor, non-floating or complex ``image``/``planes``.
+        ValueError: different devices, wrong number of dims, a tap count that is not an odd square, ``H``/``W``
+            or ``B`` that disagree.
+
+    Examples:
+        >>> img, kern = torch.rand(2, 3, 5, 4), torch.rand(5, 4, 3, 3)
+        >>> planes = kern.reshape(5, 4, 9).permute(2, 0, 1)
+        >>> torch.allclose(sv_conv2d_planes(img, planes), sv_conv2d(img, kern))
+        True
+    """
+    k, batched = _check_planes(image, planes)
+    out_dtype, dtype = compute_dtype(image, planes)
+    x = image.to(dtype)
+    pl = planes.to(dtype)
+    if is_tracing() or (torch.is_grad_enabled() and (x.requires_grad or pl.requires_grad)):
+        out = _planes_functional(x, pl.unsqueeze(2) if batched else pl, k)
+    else:
+        b, _, h, w = x.shape
+        out = _fused_planes(x, lambda: pl.reshape(b if batched else 1, k * k, h, w).contiguous(), k, batched, pl)
+        if out is None:
+            out = _planes_eager(x, pl.unsqueeze(2) if batched else pl, k)
+    return out.to(out_dtype)
+
+
+def _planes_eager(x: Tensor, planes: Tensor, k: int) -> Tensor:
+    """In-place multiply-accumulate over the taps of ready planes (``(k*k, H, W)`` or ``(B, k*k, 1, H, W)``)."""
+    h, w = x.shape[-2:]
+    p = k // 2
+    xp = F.pad(x, (p, p, p, p)) if p > 0 else x
+    at = (lambda t: planes[:, t]) if planes.dim() == 5 else (lambda t: planes[t])
+    out = torch.mul(at(0), xp[:, :, 0:h, 0:w])
+    for t in range(1, k * k):
+        i, j = divmod(t, k)
+        out.addcmul_(at(t), xp[:, :, i:i + h, j:j + w])
     return out
 
 

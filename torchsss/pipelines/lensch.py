@@ -27,7 +27,6 @@ from torchsss.geometry.lensch import (
     build_throughput,
     check_entries,
     hat_quadrature,
-    local_kernel_geometry,
     plan_kernel_size,
     plan_lensch,
     vertex_weights,
@@ -97,7 +96,7 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     atlas = build_atlas(mesh, resolution, kernel_size=kernel_size, progress=progress)
     stats["t_atlas_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    geom = local_kernel_geometry(atlas, kernel_size)
+    receivers = atlas.valid_mask[0, 0].reshape(-1).nonzero(as_tuple=True)[0]  # the texels that hold kernels
     weights = vertex_weights(mesh, atlas, discrete=not blend)  # the blending fit is made against the continuum
     tp = build_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend, max_entries=None,
                           progress=progress)
@@ -107,7 +106,7 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     if blend:
         t2 = time.perf_counter()
         bw = blending_weights(mesh, atlas, mat, kernel_size=kernel_size, threshold=threshold, relative=relative,
-                              progress=progress)
+                              index=receivers, progress=progress)
         direct, correction = bw.weights, bw.kernel_correction
         stats["t_blending_s"] = time.perf_counter() - t2
     detail = detail and not blend
@@ -119,8 +118,9 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
         stats.update(t_hat_s=time.perf_counter() - t3, hat_entries=int(hat.entries.numel()),
                      hat_terms=int(hat.term_entry.numel()))
     stats["detail"] = detail
-    local = LocalResponse(geom, mat, correction=correction, copy=False)  # owned by the module
-    glob = GlobalResponse(weights, tp, mat, atlas.valid_mask, hat=hat)
+    # the kernels' taps derived from the atlas's maps whenever the kernels are evaluated (not stored)
+    local = LocalResponse.from_atlas(atlas, kernel_size, mat, correction=correction)
+    glob = GlobalResponse(weights, tp, mat, atlas.valid_mask, hat=hat, copy=False)  # the throughput handed over
     module = LenschTranslucency(local, glob, direct=direct, detail=detail)
     stats["t_precompute_s"] = time.perf_counter() - t0
     return LenschScene(mesh, atlas, module, stats)
