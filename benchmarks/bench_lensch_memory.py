@@ -61,7 +61,8 @@ def wrap(owner, name, stage):
         return out
     setattr(owner, name, timed)
 
-for name in ("build_atlas", "local_kernel_geometry", "build_throughput", "blending_weights", "hat_quadrature"):
+for name in ("build_atlas", "local_kernel_geometry", "build_throughput", "build_dense_throughput", "blending_weights",
+             "hat_quadrature"):
     wrap(PL, name, name)
 wrap(PL, "irradiance_atlas", "frame: irradiance atlas")
 wrap(ML.GlobalResponse, "throughput_values", "frame: throughput values")

@@ -29,6 +29,7 @@ from torchsss.export.adapters import SplatExport
 from torchsss.export.materials import with_material_inputs
 from torchsss.geometry import (
     build_atlas,
+    build_dense_throughput,
     build_throughput,
     hat_quadrature,
     local_kernel_geometry,
@@ -253,6 +254,25 @@ def _global_response_case() -> ExportCase:
         test_args=(e2,),
         dynamic_shapes=({0: Dim("B")},),
         description="GlobalResponse (sparse vertex throughput as gather + scatter_add, 162 vertices, skin1): "
+                    "irradiance atlas (B, 3, 64, 64) -> global radiosity (B, 3, 64, 64)",
+        rtol=_LENSCH_RTOL,
+        scale=lambda e: glob(e).abs().amax((-2, -1), keepdim=True).expand_as(e),
+    )
+
+
+def _global_response_dense_case() -> ExportCase:
+    mesh, atlas, mat, _, _ = _lensch_parts()
+    # as build_lensch blends: a zero diagonal, the layout its "auto" picks for a small mesh (every pair kept)
+    glob = GlobalResponse(vertex_weights(mesh, atlas, discrete=False), build_dense_throughput(mesh, mat,
+                                                                                              zero_diagonal=True),
+                          mat, atlas.valid_mask)
+    e1, e2 = _atlas_irradiance(atlas, 1, 0), _atlas_irradiance(atlas, 3, 1)
+    return ExportCase(
+        module=glob,
+        example_args=(e1,),
+        test_args=(e2,),
+        dynamic_shapes=({0: Dim("B")},),
+        description="GlobalResponse, dense throughput (a batched matrix product per channel, 162 vertices, skin1): "
                     "irradiance atlas (B, 3, 64, 64) -> global radiosity (B, 3, 64, 64)",
         rtol=_LENSCH_RTOL,
         scale=lambda e: glob(e).abs().amax((-2, -1), keepdim=True).expand_as(e),
@@ -501,6 +521,7 @@ EXPORTABLE: dict[str, Callable[[], ExportCase]] = {
     "irradiance_atlas": _irradiance_atlas_case,
     "local_response": _local_response_case,
     "global_response": _global_response_case,
+    "global_response_dense": _global_response_dense_case,
     "lensch": _lensch_case,
     "lensch_materials": _lensch_materials_case,
     "splat": _splat_case,

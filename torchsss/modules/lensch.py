@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
 from torchsss.geometry.lensch import (
+    DenseThroughput,
     HatQuadrature,
     LocalKernelGeometry,
     Throughput,
@@ -413,12 +414,14 @@ class GlobalResponse(nn.Module):
 
     Args:
         weights: :class:`~torchsss.geometry.lensch.VertexWeights` (vertex ids, dual weights, barycentrics).
-        throughput: :class:`~torchsss.geometry.lensch.Throughput` (pattern, distances, source areas).
+        throughput: :class:`~torchsss.geometry.lensch.Throughput` (pattern, distances, source areas), or a
+            :class:`~torchsss.geometry.lensch.DenseThroughput` (an :math:`(N, N)` matrix: the product per frame is
+            one batched matrix product per channel; see :func:`~torchsss.geometry.lensch.throughput_layout`).
         material: the profile module (shared with the local response).
         valid: :math:`(1, 1, H, W)` texels to reconstruct on.
         distance_scale: optional :math:`(1, 1, H, W)` :math:`M_d` atlas, projected onto the source vertices.
         method: ``"auto"``, ``"csr"`` or ``"scatter"`` (see :func:`torchsss.ops.sparse.sparse_apply_t`).
-        hat: optional :class:`~torchsss.geometry.lensch.HatQuadrature` of the throughput: every entry is
+        hat: optional :class:`~torchsss.geometry.lensch.HatQuadrature` of a sparse throughput: every entry is
             integrated over the source's hat (its moment rule, and the near entries, the self entries among them,
             term by term, :math:`F_{ij} = \\sum_t w_t R_d(d_t M_{d,i})`) instead of sampled at the source vertex
             (and the self entries' disk integral); see :func:`~torchsss.geometry.lensch.hat_quadrature`.
@@ -427,17 +430,33 @@ class GlobalResponse(nn.Module):
             hands its throughput over).
     """
 
-    def __init__(self, weights: VertexWeights, throughput: Throughput, material: nn.Module, valid: Tensor, *,
-                 distance_scale: Tensor | None = None, method: str = "auto", hat: HatQuadrature | None = None,
-                 copy: bool = True):
+    #: vertex pairs of a dense throughput whose values are evaluated at once outside autograd (about 100 MB of the
+    #: profile's temporaries)
+    value_block = 1 << 20
+
+    def __init__(self, weights: VertexWeights, throughput: Throughput | DenseThroughput, material: nn.Module,
+                 valid: Tensor, *, distance_scale: Tensor | None = None, method: str = "auto",
+                 hat: HatQuadrature | None = None, copy: bool = True):
         super().__init__()
         if not isinstance(copy, bool):
             raise TypeError(f"copy: expected a bool, got {type(copy).__name__}")
+        if not isinstance(throughput, (Throughput, DenseThroughput)):
+            raise TypeError("throughput: expected a torchsss.geometry.lensch.Throughput or DenseThroughput, got "
+                            f"{type(throughput).__name__}")
+        self.dense = isinstance(throughput, DenseThroughput)
+        if self.dense and hat is not None:
+            raise ValueError("hat: expected None with a DenseThroughput (the hat quadrature indexes a sparse "
+                             "throughput's entries), got a HatQuadrature")
         dims = check_shape(weights.vertex_ids, "weights.vertex_ids", "1,3,H,W")
         check_shape(valid, "valid", "1,1,H,W", H=dims["H"], W=dims["W"])
         self.material = material
         self.method = method
         self.num_vertices = int(throughput.num_vertices)
+        n = self.num_vertices
+        if self.dense:
+            check_shape(throughput.distance, "throughput.distance", "N,N", N=n)
+            check_shape(throughput.keep, "throughput.keep", "N,N", N=n)
+            check_shape(throughput.source_area, "throughput.source_area", "N", N=n)
         self.register_buffer("vertex_ids", weights.vertex_ids.reshape(1, 1, -1).clone(), persistent=False)
         self.register_buffer("dual", weights.dual.reshape(1, 1, -1).clone(), persistent=False)
         self.register_buffer("bary", weights.bary.clone(), persistent=False)
@@ -455,7 +474,21 @@ class GlobalResponse(nn.Module):
             den.scatter_add_(0, ids.reshape(-1), flat.reshape(-1))
             vertex_md = torch.where(den > 0, num / torch.where(den > 0, den, torch.ones_like(den)),
                                     torch.ones_like(den)).clamp_min(1e-6)
-            dist = dist * vertex_md[throughput.rows]
+            if self.dense:
+                dist = dist * vertex_md[:, None]
+            else:
+                dist = dist * vertex_md[throughput.rows]
+        self.register_buffer("source_area", throughput.source_area.clone() if copy else throughput.source_area)
+        self._cache = ValueCache()
+        if self.dense:
+            self.register_buffer("distance", dist)
+            self.register_buffer("keep", throughput.keep.clone() if copy else throughput.keep, persistent=False)
+            # the kept diagonal entries (vertex ids): their disk integrals replace A_i/3 R_d(0)
+            self.register_buffer("diagonal_index", throughput.keep.diagonal().nonzero()[:, 0], persistent=False)
+            for name in ("hat_moments", "hat_entries", "hat_term_entry", "hat_distance", "hat_weight"):
+                self.register_buffer(name, None, persistent=False)
+            self.pattern = None
+            return
         moments = None
         if hat is not None:
             if not isinstance(hat, HatQuadrature):
@@ -484,7 +517,6 @@ class GlobalResponse(nn.Module):
         self.register_buffer("hat_distance", None if hat is None else hd, persistent=False)
         self.register_buffer("hat_weight", None if hat is None else hat.weight.to(dist.dtype).clone(),
                              persistent=False)
-        self.register_buffer("source_area", throughput.source_area.clone() if copy else throughput.source_area)
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
         # not per nonzero: on 6M nonzeros the closed-form cumulative for all of them took 8 s of a first frame)
         self.register_buffer("diagonal_index", (throughput.rows == throughput.cols).nonzero()[:, 0],
@@ -493,7 +525,6 @@ class GlobalResponse(nn.Module):
         self.pattern = pattern
         for name in ("rows", "cols", "t_crow", "t_col", "t_perm"):
             self.register_buffer(f"_p_{name}", getattr(pattern, name), persistent=False)
-        self._cache = ValueCache()
 
     def _pattern(self):
         return self.pattern._replace(rows=self._p_rows, cols=self._p_cols, t_crow=self._p_t_crow,
@@ -508,13 +539,15 @@ class GlobalResponse(nn.Module):
         return out.scatter_add(2, idx, src).transpose(1, 2)
 
     def throughput_values(self) -> Tensor:
-        """:math:`(nnz, C)` values :math:`A_i/3\\, R_d(d_{ij})` from the current material.
+        """:math:`(nnz, C)` values :math:`A_i/3\\, R_d(d_{ij})` from the current material (dense: :math:`(C, N, N)`).
 
         With a hat quadrature (``hat``) every entry is its moment rule and its near entries are
         :math:`\\sum_t w_t R_d(d_t)` (:class:`~torchsss.geometry.lensch.HatQuadrature`); otherwise the diagonal
         entries (present unless the throughput was built with ``zero_diagonal``) use the disk integral of
         :math:`R_d` over the vertex area instead of :math:`A_i/3\\, R_d(0)` (see :class:`LocalResponse`).
         """
+        if self.dense:
+            return self._dense_values()
         if self.hat_entries is not None:
             vals = self._blocks(self._moment_rule, self.distance.shape[0])
             return vals.index_copy(0, self.hat_entries, self.hat_values(vals.shape[-1], vals.dtype))
@@ -523,6 +556,36 @@ class GlobalResponse(nn.Module):
         if disk is None:
             return vals
         return vals.index_copy(0, self.diagonal_index, disk)
+
+    def _dense_values(self) -> Tensor:
+        """The dense throughput's values :math:`(C, N, N)`, 0 where an entry was not kept.
+
+        Outside autograd and tracing in blocks of source rows (``value_block`` pairs, 1M), written into one output.
+        """
+        n = self.num_vertices
+
+        def rows(lo: int, hi: int) -> Tensor:
+            f = self.source_area[lo:hi, None, None] * self.material(self.distance[lo:hi].unsqueeze(-1))
+            return torch.where(self.keep[lo:hi].unsqueeze(-1), f, torch.zeros_like(f)).permute(2, 0, 1)
+
+        step = max(1, self.value_block // max(n, 1))
+        if n <= step or torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
+                torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+            vals = rows(0, n)
+        else:  # written into one output (a list and a cat would hold both at once)
+            first = rows(0, step)
+            vals = first.new_empty((first.shape[0], n, n))
+            vals[:, :step] = first
+            del first
+            for lo in range(step, n, step):
+                vals[:, lo:min(n, lo + step)] = rows(lo, min(n, lo + step))
+        if self.diagonal_index.numel():
+            disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
+            if disk is not None:
+                c = vals.shape[0]
+                flat = self.diagonal_index * (n + 1)
+                vals = vals.reshape(c, n * n).index_copy(1, flat, disk.transpose(0, 1).to(vals.dtype)).reshape(c, n, n)
+        return vals
 
     def _sampled(self, lo: int, hi: int) -> Tensor:
         """The entries ``lo:hi`` sampled at the source vertex, :math:`A_i/3\\, R_d(d_{ij})`: :math:`(hi - lo, C)`."""
@@ -586,6 +649,10 @@ class GlobalResponse(nn.Module):
         eg = self.vertex_irradiance(irradiance) if vertex_irradiance is None else vertex_irradiance
         key = material_key(self.material)
         values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
+        if self.dense:  # B_j = sum_i E_i F_ij per channel: (C, B, N) @ (C, N, N)
+            dtype = torch.promote_types(eg.dtype, values.dtype)
+            out = torch.bmm(eg.permute(2, 0, 1).to(dtype), values.to(dtype))
+            return out.permute(1, 2, 0)
         return sparse_apply_t(eg, self._pattern(), values, method=self.method)
 
     def reconstruct(self, vertex_values: Tensor) -> Tensor:

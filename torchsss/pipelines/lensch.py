@@ -24,11 +24,14 @@ from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lensch import (
     MAX_THROUGHPUT_ENTRIES,
     blending_weights,
+    build_dense_throughput,
     build_throughput,
     check_entries,
+    estimate_throughput_entries,
     hat_quadrature,
     plan_kernel_size,
     plan_lensch,
+    throughput_layout,
     vertex_weights,
 )
 from torchsss.geometry.lights import Light
@@ -57,7 +60,7 @@ class LenschScene:
 def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int = 512, kernel_size: int | None = None,
                  threshold: float = 1e-5, relative: bool = True, blend: bool | None = None,
                  max_entries: int | None = MAX_THROUGHPUT_ENTRIES, progress: bool = False,
-                 detail: bool = True) -> LenschScene:
+                 detail: bool = True, layout: str = "auto") -> LenschScene:
     """Precompute everything the per-frame Lensch module needs (see the module docstring).
 
     ``material`` is a :class:`~torchsss.physics.Material` record, a preset name or a profile module (shared by the
@@ -76,9 +79,19 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     1.36%, the default scene at 128 x 128 1.62% -> 0.87%, the back-lit 20 mm skin2 spot 1.53% -> 0.62%, the
     side-lit 30 mm marble bunny 4.32% -> 2.70% (built on 5,907 of its 69k faces, as the throughput's cap allows:
     the reference with its sources on 5,360 faces is itself 2.7% off the full mesh's).
+
+    ``layout``: the throughput's storage, ``"sparse"`` (:func:`~torchsss.geometry.lensch.build_throughput`),
+    ``"dense"`` (:func:`~torchsss.geometry.lensch.build_dense_throughput`, without ``detail``'s hat quadrature, which
+    indexes sparse entries) or ``"auto"`` (default): dense where it is the smaller one
+    (:func:`~torchsss.geometry.lensch.throughput_layout`, from the estimated entries) and no hat quadrature is
+    built. The default scene (2,930 vertices, 74% of the pairs kept) builds dense at atlas 512 (blended): the same
+    values, the build's peak resident set 1.25 -> 0.94 GB, the first frame's 1.66 -> 1.36 GB, a relit frame 0.50 ->
+    0.38 s (``benchmarks/bench_lensch_memory.py``).
     """
     if not isinstance(detail, bool):
         raise TypeError(f"detail: expected a bool, got {type(detail).__name__}")
+    if layout not in ("auto", "dense", "sparse"):
+        raise ValueError(f"layout: expected 'auto', 'dense' or 'sparse', got {layout!r}")
     stats: dict = {}
     mat = material_module(material, dtype=None if isinstance(material, nn.Module) else mesh.vertices.dtype,
                           device=mesh.vertices.device)
@@ -92,15 +105,31 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
     if kernel_size is None:
         kernel_size = plan_kernel_size(mesh, resolution) if blend else 7
     stats.update(kernel_size=kernel_size, blend=blend)
+    if layout == "dense" and detail and not blend:
+        raise ValueError("layout: expected 'sparse' or 'auto' with detail=True and no blending (the hat quadrature "
+                         "indexes a sparse throughput's entries), got 'dense'")
     t0 = time.perf_counter()
     atlas = build_atlas(mesh, resolution, kernel_size=kernel_size, progress=progress)
     stats["t_atlas_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     receivers = atlas.valid_mask[0, 0].reshape(-1).nonzero(as_tuple=True)[0]  # the texels that hold kernels
     weights = vertex_weights(mesh, atlas, discrete=not blend)  # the blending fit is made against the continuum
-    tp = build_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend, max_entries=None,
-                          progress=progress)
-    stats.update(t_kernels_throughput_s=time.perf_counter() - t1, nnz=int(tp.rows.shape[0]),
+    detail = detail and not blend
+    if layout == "auto":
+        entries = stats["throughput_estimate"]
+        if entries is None:
+            entries = estimate_throughput_entries(mesh, mat, threshold=threshold, relative=relative)
+        channels = int(mat(mesh.vertices.new_ones(1, 1)).shape[-1])
+        layout = "sparse" if detail else throughput_layout(mesh.num_vertices, entries, channels)
+    if layout == "dense":
+        tp = build_dense_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend,
+                                    max_pairs=None)
+        nnz = int(tp.keep.sum())
+    else:
+        tp = build_throughput(mesh, mat, threshold=threshold, relative=relative, zero_diagonal=blend,
+                              max_entries=None, progress=progress)
+        nnz = int(tp.rows.shape[0])
+    stats.update(t_kernels_throughput_s=time.perf_counter() - t1, nnz=nnz, layout=layout,
                  vertices=mesh.num_vertices, cutoff_mm=tp.cutoff_mm)
     direct = correction = None
     if blend:
@@ -109,7 +138,6 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
                               index=receivers, progress=progress)
         direct, correction = bw.weights, bw.kernel_correction
         stats["t_blending_s"] = time.perf_counter() - t2
-    detail = detail and not blend
     hat = None
     if detail:
         t3 = time.perf_counter()
@@ -143,18 +171,20 @@ class LenschRenderer(Renderer):
             kernels on the irradiance's detail (no near field counted twice; :func:`build_lensch`).
         source_faces: build the atlas, kernels and throughput on the mesh decimated to about this many faces
             while the camera sees the full mesh (:mod:`torchsss.pipelines.atlas_view`); None: the mesh itself.
+        layout: the throughput's storage, ``"auto"``, ``"dense"`` or ``"sparse"`` (:func:`build_lensch`).
     """
 
     method = "lensch"
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
                                     blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
-                                    max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None, detail=True)
+                                    max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None, detail=True,
+                                    layout="auto")
 
     @classmethod
     def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
         """A renderer around an existing :func:`build_lensch` result (no new setup)."""
         fixed = {"kernel_size": int(built.module.local.kernel_size), "blend": built.module.direct is not None,
-                 "detail": built.module.detail}
+                 "detail": built.module.detail, "layout": "dense" if built.module.global_response.dense else "sparse"}
         return super().from_built(built, **{**knobs, **fixed})
 
     def _build(self) -> None:
@@ -163,9 +193,10 @@ class LenschRenderer(Renderer):
         self.built = build_lensch(self.source_mesh, self.material, resolution=k["atlas_resolution"],
                                   kernel_size=k["kernel_size"], threshold=k["threshold"], relative=k["relative"],
                                   blend=k["blend"], max_entries=k["max_entries"], progress=self.progress,
-                                  detail=k["detail"])
+                                  detail=k["detail"], layout=k["layout"])
         k["kernel_size"] = int(self.built.module.local.kernel_size)
         k["blend"] = self.built.module.direct is not None
+        k["layout"] = self.built.stats["layout"]
         self.module = self.built.module
         self.atlas = self.built.atlas
         self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
