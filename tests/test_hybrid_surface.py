@@ -116,6 +116,35 @@ def test_surface_local_matches_a_loop_with_varying_irradiance():
     assert float(want.abs().max()) > 0
 
 
+def test_surface_local_keeps_its_cached_pairs_past_an_uncached_call(monkeypatch):
+    """A frame's refined pixels (cache=False) neither evict the view's cached pair weights nor get cached."""
+    mat = DipoleMaterial(*Material.from_json("marble").tensors(F64)).requires_grad_(False)
+    local, smp, w = _flat_local(mat, spacing=0.5, half=6.0)
+    e = torch.ones(1, 3, 8, 8, dtype=F64)
+    a = ball_pairs(torch.zeros(4, 3, dtype=F64), smp.position, w.bound)
+    b = ball_pairs(torch.full((3, 3), 0.7, dtype=F64) * torch.tensor([1.0, 1.0, 0.0], dtype=F64), smp.position,
+                   w.bound)
+    calls = []
+    original = SurfaceLocal.pair_weights
+
+    def counted(self, cols, distance):
+        calls.append(int(cols.numel()))
+        return original(self, cols, distance)
+
+    monkeypatch.setattr(SurfaceLocal, "pair_weights", counted)
+    with torch.no_grad():
+        first = local(e, *a, 4)
+        other = local(e, *b, 3, cache=False)
+        again = local(e, *a, 4)
+        other_again = local(e, *b, 3, cache=False)
+    # the cached pairs were weighted once; the uncached ones on every call
+    assert calls == [a[0].numel(), b[0].numel(), b[0].numel()]
+    torch.testing.assert_close(again, first, rtol=0, atol=0)
+    torch.testing.assert_close(other_again, other, rtol=0, atol=0)
+    with pytest.raises(TypeError, match="cache"):
+        local(e, *a, 4, cache=1)
+
+
 def test_surface_local_gradcheck_and_errors():
     mat = DipoleMaterial(*Material.from_json("skin1").tensors(F64))
     mesh = sphere(3.0, 1, dtype=F64)

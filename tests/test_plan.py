@@ -23,6 +23,8 @@ from torchsss.plan import (
     SceneFacts,
     candidates,
     detail_faces,
+    hybrid_local_bound,
+    hybrid_local_plan,
     plan,
     plan_method,
     predict,
@@ -245,6 +247,52 @@ def test_samples_below_the_floor_plan_the_most_accurate_hybrid():
     assert pred * MARGINS["hybrid"] > 0.005 and pred <= 1.15 * floor
     knobs, _, note = plan_method(s, "hybrid", 0.005)
     assert knobs["samples"] == n and "most accurate" in note
+
+
+def test_hybrid_local_pairs_predicted_like_the_renderer_counts_them():
+    # the default scene at 48 x 48: the renderer's surface local term at stride 1 lists every covered pixel's samples
+    # within the local bound; the plan's count from the facts (samples x pi r_b^2 / area)
+    s = load_scene(default_scene_path())
+    s = dataclasses.replace(s, camera=dataclasses.replace(s.camera, width=48, height=48))
+    facts = SceneFacts.from_scene(s, throughput=False)
+    stride, pairs, per = hybrid_local_plan(facts)
+    assert stride == 1 and pairs == pytest.approx(per * facts.covered_px)
+    res = build("hybrid", s.load_mesh(), s.material, samples=1024).render(s.lights, s.camera)
+    st = res.stats
+    assert st["local_term"] == "surface" and st["local_stride"] == 1
+    assert facts.local_bound_mm == pytest.approx(st["local_bound_mm"], rel=1e-6)
+    measured = st["local_pairs"] / float(res.mask.sum())
+    assert per == pytest.approx(measured, rel=0.3)
+
+
+def test_hybrid_split_narrowing_is_predicted_and_planned_as_the_all_sampled_estimator():
+    s = _scene(mesh="torus", size=30.0, material="marble", res=64, light=(1.0, 0.3, 0.2))
+    facts = SceneFacts.from_scene(s, throughput=False)
+    assert facts.local_bound_mm > 0
+    mat = s.material
+    for_n = {"samples": 4096}
+    stride, _, per = hybrid_local_plan(facts)
+    assert stride >= 1 and per > 0
+    plain = predict("hybrid", for_n, facts, mat)
+    # the same object seen by many more pixels: even stride 8 cannot hold its pairs, the renderer narrows the split
+    big = dataclasses.replace(facts, covered_px=facts.covered_px * 400)
+    assert hybrid_local_plan(big)[0] == -1
+    narrowed = predict("hybrid", for_n, big, mat)
+    icdf = predict("icdf", for_n, big, mat)
+    assert narrowed["error"] == pytest.approx(icdf["error"]) and narrowed["error"] > plain["error"]
+    # strides grow with the pixels while they fit; the local term's pairs cost frame and setup time
+    strides = [hybrid_local_plan(dataclasses.replace(facts, covered_px=facts.covered_px * f))[0]
+               for f in (1, 2, 4, 8, 16, 64, 400)]
+    order = [99 if st == -1 else st for st in strides]  # narrowed after every stride
+    assert order == sorted(order) and strides[0] >= 1 and len(set(strides)) >= 3
+    none = dataclasses.replace(facts, local_bound_mm=0.0)
+    assert hybrid_local_plan(none) == (0, 0.0, 0.0)
+    assert predict("hybrid", for_n, none, mat)["frame_s"] < plain["frame_s"]
+    # the split is off where the bound exceeds 0.8 x the object's radius (build_hybrid's max_reach)
+    module = s.material
+    from torchsss.modules.material import material_module
+    m = material_module(module, dtype=torch.float64)
+    assert hybrid_local_bound(m, 1.0) == 0.0 and hybrid_local_bound(m, 100.0) > 0
 
 
 def test_splat_truncation_and_sample_floor_hold_whatever_the_light():

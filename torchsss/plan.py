@@ -22,7 +22,10 @@ miss) and :func:`depth` (the object's thickness in scattering lengths, weighted 
 * splat: a floor, a truncation term ~ ``eps`` growing with ``unlit`` and ``depth``, and a light-view sampling term
   ~ 1/oversample^2; time ~ splats x footprint pixels.
 * icdf / hybrid: Monte Carlo, :math:`a\\,N^{-p}` with ``a`` growing with ``unlit`` and ``depth`` (hybrid: plus its
-  split's floor); time ~ pixels x N.
+  split's floor); time ~ pixels x N. The hybrid's surface local term adds its pairs (covered pixels x the samples
+  within the local bound, at the pixel stride the renderer would pick, :func:`hybrid_local_plan`) to setup and
+  frame; where they do not fit even at stride 8 the renderer narrows the split, and the hybrid is predicted with the
+  icdf estimator's error (the near field it then samples is noisier than its fitted model).
 * lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput,
   blending) dominates.
 
@@ -69,9 +72,10 @@ from torchsss.geometry.mesh import Mesh, decimate, surface_deviation
 from torchsss.geometry.sampling import faces_for_spacing
 from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK, WARM_WORK, compile_mode, is_warm
-from torchsss.physics.budget import splat_alias_error
+from torchsss.physics.budget import chang_rp, splat_alias_error
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
+from torchsss.pipelines.chang import profile_rp
 from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
@@ -121,6 +125,13 @@ MODEL: dict[str, float] = {
     "hybrid_t_pair": 1.8e-7, "hybrid_f0": 0.693,
     "hybrid_s0": 0.275, "hybrid_a": 0.00725, "hybrid_p": 0.846, "hybrid_floor": 0.0121, "hybrid_u": 1.94,
     "hybrid_u_floor": 0.196, "hybrid_q_depth": 1.13,
+    # the hybrid's surface local term (hybrid_local_plan): per pair, the first frame of a view lists the pairs and
+    # their weights (k-d tree and profile), every frame sums them; at stride > 1 about half the covered pixels are
+    # refined exactly, their pairs listed, weighted and summed in that frame (measured 2026-11-26 at 128 x 128, 1
+    # thread: the default scene 4.5M pairs, 0.24 s a frame; the side-lit marble torus 5.5M pairs at stride 2 and
+    # 2,212 of 3,640 pixels exact, 3.2 s; the cream spot 55% exact)
+    "hybrid_t_local": 5.2e-8, "hybrid_t_local_build": 3.2e-7, "hybrid_t_exact": 3.0e-7,
+    "hybrid_exact_fraction": 0.5, "hybrid_local_edge": 14.6, "hybrid_local_headroom": 2.0,
     # lensch: frame = t_texel * res^2 + f0; setup = s0 + s_face * faces + s_kernel * res^2 * k^2 (blending);
     # error = hypot(floor, c * (texel / (1/sigma_tr)_min)^3, blend when blending): since the unblended kernels
     # answer only the irradiance's detail (hat quadrature), the unblended build is the accurate one (re-measured
@@ -195,6 +206,8 @@ class SceneFacts:
         source_deviation_mm: per :data:`REFERENCE_EPS`, how far the mesh decimated to ``source_faces`` strays from
             the surface (:func:`~torchsss.geometry.mesh.surface_deviation`, 90th percentile; 0 where the sources
             would not be decimated).
+        local_bound_mm: the hybrid's local bound :math:`r_b` at its default split (:func:`hybrid_local_bound`; 0
+            when the split is off because :math:`r_b` exceeds 0.8 times the object's radius).
         throughput_entries: Lensch's vertex throughput entries on the full mesh at its default threshold
             (:func:`~torchsss.geometry.lensch.estimate_throughput_entries`; -1 when not estimated: ``from_scene``
             with ``throughput=False``, for plans that cannot pick Lensch); they scale with the square of the
@@ -221,6 +234,7 @@ class SceneFacts:
     sources_decimated: tuple[int, ...]
     throughput_entries: int
     source_deviation_mm: tuple[float, ...] = ()
+    local_bound_mm: float = 0.0
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True) -> SceneFacts:
@@ -267,7 +281,55 @@ class SceneFacts:
                    ell_mm=tuple(float(x) for x in ell), r_max_mm=prof.r_max_channels(TRUTH_EPS),
                    spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated,
                    throughput_entries=estimate_throughput_entries(mesh, mat, rows=64) if throughput else -1,
-                   source_deviation_mm=deviation)
+                   source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius))
+
+
+def hybrid_local_bound(material: torch.nn.Module, radius_mm: float, *, c: float = 0.1, k: float = 1.5,
+                       local_eps: float = 1e-2, max_reach: float = 0.8) -> float:
+    """The hybrid's local bound :math:`r_b = R_p + \\ln(0.5/\\epsilon_l)/k` at its default split (mm), 0 when off.
+
+    As :func:`~torchsss.pipelines.chang.build_hybrid` with its defaults (``c`` 0.1, ``k`` 1.5, the surface local
+    term's ``local_eps`` 1e-2, the split off beyond ``max_reach`` times the object's radius).
+    """
+    with torch.no_grad():
+        if all(hasattr(material, a) for a in ("sigma_a", "sigma_s_prime", "eta")):
+            r_p = float(chang_rp(material.sigma_a.detach(), material.sigma_s_prime.detach(), material.eta.detach(),
+                                 c=c).amax())
+        else:
+            r_p = profile_rp(material, c)
+    bound = r_p + math.log(0.5 / local_eps) / k if r_p > 0 else 0.0
+    return 0.0 if bound > max_reach * radius_mm else bound
+
+
+#: The hybrid renderer's budget of local pairs (:class:`~torchsss.pipelines.chang.HybridRenderer`'s
+#: ``max_local_pairs``) and the pixel strides it tries.
+HYBRID_MAX_LOCAL_PAIRS = 8_000_000
+HYBRID_STRIDES = (1, 2, 3, 4, 6, 8)
+
+
+def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int, float, float]:
+    """The hybrid's surface local term on a scene, predicted: ``(stride, pairs, pairs per receiver)``.
+
+    Stride 0: no split (nothing local); -1: the pairs do not fit even at stride 8 and the renderer narrows the split
+    (more of the near field sampled: noisier than the hybrid's error model, which is fitted on unnarrowed splits).
+    A receiver gathers the samples (the reference's, :attr:`SceneFacts.sources`) on the part of the surface within
+    :math:`r_b`, about :math:`n\\,\\pi r_b^2 / A`; at stride ``s`` the renderer evaluates about
+    :math:`P/s^2 + e\\sqrt{P}` receivers of the :math:`P` covered pixels, the second term the gaps and silhouettes it
+    evaluates exactly (``hybrid_local_edge``: 14.6, measured on the side-lit 30 mm marble torus at 128 x 128: 1,514
+    receivers at stride 2 of 2,910 covered pixels). The renderer's own count decides; this estimate is taken with a
+    headroom of ``hybrid_local_headroom`` (2) before a stride is predicted to fit.
+    """
+    m = {**MODEL, **(model or {})}
+    if facts.local_bound_mm <= 0:
+        return 0, 0.0, 0.0
+    px = facts.covered_px
+    per = facts.sources[0] * min(1.0, math.pi * facts.local_bound_mm ** 2 / max(facts.area_mm2, 1e-9))
+    budget = HYBRID_MAX_LOCAL_PAIRS / m["hybrid_local_headroom"]
+    for stride in HYBRID_STRIDES:
+        receivers = px if stride == 1 else px / stride ** 2 + m["hybrid_local_edge"] * math.sqrt(px)
+        if receivers * per <= budget:
+            return stride, receivers * per, per
+    return -1, 0.0, per
 
 
 def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
@@ -533,13 +595,20 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             frame = pair_s + m["icdf_f0"]
             setup += compile_s
         else:
-            err = math.hypot(m["hybrid_floor"] * u ** m["hybrid_u_floor"],
-                             m["hybrid_a"] * u ** m["hybrid_u"] * d ** m["hybrid_q_depth"]
-                             * (4096.0 / n) ** m["hybrid_p"])
+            stride, pairs, per = hybrid_local_plan(facts, m)
+            if stride < 0:  # the split narrows: more of the near field sampled; bounded by the all-sampled estimator
+                err = math.hypot(m["icdf_floor"], m["icdf_a"] * u ** m["icdf_u"] * d ** m["icdf_q_depth"]
+                                 * (4096.0 / n) ** m["icdf_p"])
+            else:
+                err = math.hypot(m["hybrid_floor"] * u ** m["hybrid_u_floor"],
+                                 m["hybrid_a"] * u ** m["hybrid_u"] * d ** m["hybrid_q_depth"]
+                                 * (4096.0 / n) ** m["hybrid_p"])
             # the split runs in the fused kernel too
             pair_s, compile_s = _pair_time(px * n, m["hybrid_t_pair"], m, "split" in warm)
-            frame = pair_s + m["hybrid_f0"]
-            setup += m["hybrid_s0"] + compile_s
+            exact = m["hybrid_exact_fraction"] * px * per if stride > 1 else 0.0
+            local = pairs if stride >= 0 else HYBRID_MAX_LOCAL_PAIRS
+            frame = pair_s + m["hybrid_f0"] + m["hybrid_t_local"] * local + m["hybrid_t_exact"] * exact
+            setup += m["hybrid_s0"] + compile_s + m["hybrid_t_local_build"] * local
         return {"error": err, "setup_s": setup, "frame_s": frame, "compile_s": compile_s}
     if method == "lensch":
         res = int(knobs.get("atlas_resolution", 512))

@@ -434,8 +434,12 @@ class SurfaceLocal(nn.Module):
         return self.area[cols].unsqueeze(-1).to(d.dtype) * self.material(d) * self.weight(d)
 
     def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor,
-                receivers: int | Tensor) -> Tensor:
+                receivers: int | Tensor, *, cache: bool = True) -> Tensor:
         """:math:`B_l` at ``receivers`` points, :math:`(B, M, C)` (see the class docstring).
+
+        ``cache``: keep the pairs' weights :math:`A_s R_d W_l^b` for the next call with the same pairs and material
+        (outside autograd; one set is kept). ``False`` for pairs used once (a frame's refined pixels): they neither
+        evict the kept set nor can a later tensor at the same address be mistaken for them.
 
         Raises:
             TypeError, ValueError: bad tensors or shapes (named), a NaN or infinite irradiance texel.
@@ -451,7 +455,9 @@ class SurfaceLocal(nn.Module):
         else:
             receivers = check_int(receivers, "receivers", 0)
         es = self.sample_irradiance(irradiance)  # (B, N, C)
-        key = material_key(self.material)
+        if not isinstance(cache, bool):
+            raise TypeError(f"cache: expected a bool, got {type(cache).__name__}")
+        key = material_key(self.material) if cache else None
         w = self._cache.get(None if key is None else (*key, distance.data_ptr(), p),
                             lambda: self.pair_weights(cols, distance))
         out = es.new_zeros(es.shape[0], receivers, es.shape[-1])
