@@ -244,8 +244,8 @@ def _local_response_case() -> ExportCase:
     )
 
 
-def _global_response_case() -> ExportCase:
-    _, atlas, _, _, glob = _lensch_parts()
+def _global_case(glob: GlobalResponse, atlas, kind: str) -> ExportCase:
+    """A :class:`GlobalResponse` entry: batch 1 at export, 3 at test."""
     e1, e2 = _atlas_irradiance(atlas, 1, 0), _atlas_irradiance(atlas, 3, 1)
     # the dual-basis vertex irradiance is signed and the reconstruction cancels: relative to each map's largest
     return ExportCase(
@@ -253,30 +253,24 @@ def _global_response_case() -> ExportCase:
         example_args=(e1,),
         test_args=(e2,),
         dynamic_shapes=({0: Dim("B")},),
-        description="GlobalResponse (sparse vertex throughput as gather + scatter_add, 162 vertices, skin1): "
-                    "irradiance atlas (B, 3, 64, 64) -> global radiosity (B, 3, 64, 64)",
+        description=f"GlobalResponse ({kind}, 162 vertices, skin1): irradiance atlas (B, 3, 64, 64) -> global "
+                    "radiosity (B, 3, 64, 64)",
         rtol=_LENSCH_RTOL,
         scale=lambda e: glob(e).abs().amax((-2, -1), keepdim=True).expand_as(e),
     )
+
+
+def _global_response_case() -> ExportCase:
+    _, atlas, _, _, glob = _lensch_parts()
+    return _global_case(glob, atlas, "sparse vertex throughput as gather + scatter_add")
 
 
 def _global_response_dense_case() -> ExportCase:
     mesh, atlas, mat, _, _ = _lensch_parts()
     # as build_lensch blends: a zero diagonal, the layout its "auto" picks for a small mesh (every pair kept)
-    glob = GlobalResponse(vertex_weights(mesh, atlas, discrete=False), build_dense_throughput(mesh, mat,
-                                                                                              zero_diagonal=True),
-                          mat, atlas.valid_mask)
-    e1, e2 = _atlas_irradiance(atlas, 1, 0), _atlas_irradiance(atlas, 3, 1)
-    return ExportCase(
-        module=glob,
-        example_args=(e1,),
-        test_args=(e2,),
-        dynamic_shapes=({0: Dim("B")},),
-        description="GlobalResponse, dense throughput (a batched matrix product per channel, 162 vertices, skin1): "
-                    "irradiance atlas (B, 3, 64, 64) -> global radiosity (B, 3, 64, 64)",
-        rtol=_LENSCH_RTOL,
-        scale=lambda e: glob(e).abs().amax((-2, -1), keepdim=True).expand_as(e),
-    )
+    tp = build_dense_throughput(mesh, mat, zero_diagonal=True)
+    glob = GlobalResponse(vertex_weights(mesh, atlas, discrete=False), tp, mat, atlas.valid_mask)
+    return _global_case(glob, atlas, "dense throughput, a batched matrix product per channel")
 
 
 # -- splat --------------------------------------------------------------------------------------------------------

@@ -35,12 +35,18 @@ _GROUP = 4
 _MACS_PER_WORK = 128
 
 
-def _check_inputs(image: object, kernels: object) -> tuple[int, bool]:
-    """Validate ``image``/``kernels``; return ``(k, batched_kernels)``."""
-    check_devices({"image": image, "kernels": kernels}, floating=True)  # first: before any host synchronisation
+def _image_dims(image: Tensor) -> tuple[int, int, int]:
+    """``(B, H, W)`` of a :math:`(B, C, H, W)` image (ValueError naming ``image`` otherwise)."""
     if image.dim() != 4:
         raise ValueError(f"image: expected shape (B, C, H, W) (4 dims), got {tuple(image.shape)}")
     b, _, h, w = image.shape
+    return b, h, w
+
+
+def _check_inputs(image: object, kernels: object) -> tuple[int, bool]:
+    """Validate ``image``/``kernels``; return ``(k, batched_kernels)``."""
+    check_devices({"image": image, "kernels": kernels}, floating=True)  # first: before any host synchronisation
+    b, h, w = _image_dims(image)
     if kernels.dim() not in (4, 5):
         raise ValueError(f"kernels: expected shape (H, W, k, k) or (B, H, W, k, k), got {tuple(kernels.shape)}")
     batched = kernels.dim() == 5
@@ -246,9 +252,7 @@ def _sv_conv2d_tiled(x: Tensor, kern: Tensor, k: int) -> Tensor:
 def _check_planes(image: object, planes: object) -> tuple[int, bool]:
     """Validate ``image``/``planes`` of :func:`sv_conv2d_planes`; return ``(k, batched)``."""
     check_devices({"image": image, "planes": planes}, floating=True)
-    if image.dim() != 4:
-        raise ValueError(f"image: expected shape (B, C, H, W) (4 dims), got {tuple(image.shape)}")
-    b, _, h, w = image.shape
+    b, h, w = _image_dims(image)
     if planes.dim() not in (3, 4):
         raise ValueError(f"planes: expected shape (k*k, H, W) or (B, k*k, H, W), got {tuple(planes.shape)}")
     batched = planes.dim() == 4
