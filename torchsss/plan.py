@@ -75,7 +75,7 @@ from torchsss.ops.fused import COLD_WORK, WARM_WORK, compile_mode, is_warm
 from torchsss.physics.budget import chang_rp, splat_alias_error
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
-from torchsss.pipelines.chang import profile_rp
+from torchsss.pipelines.chang import LOCAL_STRIDES, HybridRenderer, profile_rp
 from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
@@ -284,13 +284,16 @@ class SceneFacts:
                    source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius))
 
 
-def hybrid_local_bound(material: torch.nn.Module, radius_mm: float, *, c: float = 0.1, k: float = 1.5,
-                       local_eps: float = 1e-2, max_reach: float = 0.8) -> float:
+def hybrid_local_bound(material: torch.nn.Module, radius_mm: float) -> float:
     """The hybrid's local bound :math:`r_b = R_p + \\ln(0.5/\\epsilon_l)/k` at its default split (mm), 0 when off.
 
-    As :func:`~torchsss.pipelines.chang.build_hybrid` with its defaults (``c`` 0.1, ``k`` 1.5, the surface local
-    term's ``local_eps`` 1e-2, the split off beyond ``max_reach`` times the object's radius).
+    As :func:`~torchsss.pipelines.chang.build_hybrid` at :class:`~torchsss.pipelines.chang.HybridRenderer`'s default
+    knobs (``c``, ``k``, ``max_reach``: the split off beyond that times the object's radius) and the surface local
+    term's ``local_eps`` 1e-2.
     """
+    knobs = HybridRenderer.defaults
+    c, k, max_reach = knobs["c"], knobs["k"], knobs["max_reach"]
+    local_eps = 1e-2 if knobs["local_eps"] is None else knobs["local_eps"]
     with torch.no_grad():
         if all(hasattr(material, a) for a in ("sigma_a", "sigma_s_prime", "eta")):
             r_p = float(chang_rp(material.sigma_a.detach(), material.sigma_s_prime.detach(), material.eta.detach(),
@@ -299,12 +302,6 @@ def hybrid_local_bound(material: torch.nn.Module, radius_mm: float, *, c: float 
             r_p = profile_rp(material, c)
     bound = r_p + math.log(0.5 / local_eps) / k if r_p > 0 else 0.0
     return 0.0 if bound > max_reach * radius_mm else bound
-
-
-#: The hybrid renderer's budget of local pairs (:class:`~torchsss.pipelines.chang.HybridRenderer`'s
-#: ``max_local_pairs``) and the pixel strides it tries.
-HYBRID_MAX_LOCAL_PAIRS = 8_000_000
-HYBRID_STRIDES = (1, 2, 3, 4, 6, 8)
 
 
 def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int, float, float]:
@@ -324,8 +321,8 @@ def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int
         return 0, 0.0, 0.0
     px = facts.covered_px
     per = facts.sources[0] * min(1.0, math.pi * facts.local_bound_mm ** 2 / max(facts.area_mm2, 1e-9))
-    budget = HYBRID_MAX_LOCAL_PAIRS / m["hybrid_local_headroom"]
-    for stride in HYBRID_STRIDES:
+    budget = HybridRenderer.defaults["max_local_pairs"] / m["hybrid_local_headroom"]
+    for stride in LOCAL_STRIDES:
         receivers = px if stride == 1 else px / stride ** 2 + m["hybrid_local_edge"] * math.sqrt(px)
         if receivers * per <= budget:
             return stride, receivers * per, per
@@ -606,7 +603,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             # the split runs in the fused kernel too
             pair_s, compile_s = _pair_time(px * n, m["hybrid_t_pair"], m, "split" in warm)
             exact = m["hybrid_exact_fraction"] * px * per if stride > 1 else 0.0
-            local = pairs if stride >= 0 else HYBRID_MAX_LOCAL_PAIRS
+            local = pairs if stride >= 0 else HybridRenderer.defaults["max_local_pairs"]
             frame = pair_s + m["hybrid_f0"] + m["hybrid_t_local"] * local + m["hybrid_t_exact"] * exact
             setup += m["hybrid_s0"] + compile_s + m["hybrid_t_local_build"] * local
         return {"error": err, "setup_s": setup, "frame_s": frame, "compile_s": compile_s}

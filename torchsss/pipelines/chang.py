@@ -309,6 +309,10 @@ class IcdfRenderer(Renderer):
         return RenderResult(radiance, radiosity, gbuf.mask, stats)
 
 
+#: The pixel strides the hybrid's surface local term tries, finest first (:meth:`HybridRenderer._local_plan`).
+LOCAL_STRIDES = (1, 2, 3, 4, 6, 8)
+
+
 class HybridRenderer(IcdfRenderer):
     """Chang et al.'s hybrid: an ``rings x per_ring + 1`` local filter plus ``samples`` global samples per frame.
 
@@ -368,7 +372,6 @@ class HybridRenderer(IcdfRenderer):
 
         tree = cKDTree(samples.detach().double().cpu().numpy())
         pick = covered[torch.randperm(covered.shape[0], generator=torch.Generator().manual_seed(0))[:256]]
-        strides = (1, 2, 3, 4, 6, 8)
         result = None
         self._local_reason = "atlas (fallback: no covered pixel)"
         for scale in (1, 2, 4, 8, 16):
@@ -380,9 +383,9 @@ class HybridRenderer(IcdfRenderer):
                 break
             per = float(tree.query_ball_point(pick.detach().double().cpu().numpy(), module.bound,
                                               return_length=True).mean()) if pick.shape[0] else 0.0
-            first = next((i for i, st in enumerate(strides) if covered.shape[0] / st**2 * per <= budget),
-                         len(strides))
-            for stride in strides[first:]:  # the estimate misses the edges evaluated exactly: the count decides
+            first = next((i for i, st in enumerate(LOCAL_STRIDES) if covered.shape[0] / st**2 * per <= budget),
+                         len(LOCAL_STRIDES))
+            for stride in LOCAL_STRIDES[first:]:  # the estimate misses the edges evaluated exactly: the count decides
                 # a 3-D gather is continuous across creases: only gaps (silhouettes, other surfaces) are edges here
                 plan = coarse_receivers(pos, nrm, mask, stride, max_angle_deg=180.0)
                 try:
