@@ -25,7 +25,8 @@ miss) and :func:`depth` (the object's thickness in scattering lengths, weighted 
   split's floor); time ~ pixels x N. The hybrid's surface local term adds its pairs (covered pixels x the samples
   within the local bound, at the pixel stride the renderer would pick, :func:`hybrid_local_plan`) to setup and
   frame; where they do not fit even at stride 8 the renderer narrows the split, and the hybrid is predicted with the
-  icdf estimator's error (the near field it then samples is noisier than its fitted model).
+  icdf estimator's error (the near field it then samples is noisier than its fitted model), as it is where the split
+  is off (then it is the icdf estimator).
 * lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput,
   blending) dominates.
 
@@ -46,6 +47,9 @@ this process has already compiled that kernel (:func:`warm_kernels`), and none u
   (:func:`~torchsss.geometry.lensch.plan_lensch`).
 * ``reference``: the reference itself when it is the cheapest way to the tolerance (tiny images, tiny meshes).
 * ``compile``: one compile of the fused pair sum, unless this process has compiled it already.
+* ``local_term``: the hybrid without a split (its local bound reaches across the object), or whose split narrows
+  because its local pairs cannot fit, is the icdf estimator or bounded by it: N planned with the icdf estimator's
+  error (:func:`hybrid_local_plan`).
 
 Lengths are millimetres, times seconds (of the calibration machine, one thread).
 """
@@ -80,8 +84,8 @@ from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
-__all__ = ["MARGINS", "MODEL", "RULES", "Plan", "SceneFacts", "candidates", "plan", "plan_method", "predict",
-           "warm_kernels"]
+__all__ = ["MARGINS", "MODEL", "RULES", "Plan", "SceneFacts", "candidates", "hybrid_local_bound", "hybrid_local_plan",
+           "plan", "plan_method", "predict", "warm_kernels"]
 
 #: The rules the planner applies (name -> what it skips or chooses).
 RULES = {
@@ -93,6 +97,7 @@ RULES = {
     "blend": "lensch: blending only where the kernel reaches the neighbouring vertices",
     "reference": "the reference itself when it is the cheapest way to the tolerance",
     "compile": "reference/icdf/hybrid: one compile of the fused pair sum, unless this process already compiled it",
+    "local_term": "hybrid: its local term's pairs costed; no split or a narrowing one planned as the icdf estimator",
 }
 
 #: Constants of the predictions (see :func:`predict` for the forms). The error constants are fitted by
@@ -593,7 +598,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             setup += compile_s
         else:
             stride, pairs, per = hybrid_local_plan(facts, m)
-            if stride < 0:  # the split narrows: more of the near field sampled; bounded by the all-sampled estimator
+            if stride <= 0:  # no split: the icdf estimator itself; a narrowed split: bounded by it
                 err = math.hypot(m["icdf_floor"], m["icdf_a"] * u ** m["icdf_u"] * d ** m["icdf_q_depth"]
                                  * (4096.0 / n) ** m["icdf_p"])
             else:
@@ -691,12 +696,20 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                                 "rules": r})
         elif method in ("icdf", "hybrid"):
             m = {**MODEL, **(model or {})}
-            a = (m[f"{method}_a"] * max(facts.unlit, 0.1) ** m[f"{method}_u"]
-                 * depth(facts) ** m[f"{method}_q_depth"])
-            floor = m[f"{method}_floor"] * max(facts.unlit, 0.1) ** m.get(f"{method}_u_floor", 0.0)
-            power = m[f"{method}_p"]
+            # the error model predict() uses: a hybrid without a split, or whose split narrows, as the icdf estimator
+            local_stride = hybrid_local_plan(facts, m)[0] if method == "hybrid" else 1
+            fit = "icdf" if local_stride <= 0 else method
+            a = (m[f"{fit}_a"] * max(facts.unlit, 0.1) ** m[f"{fit}_u"]
+                 * depth(facts) ** m[f"{fit}_q_depth"])
+            floor = m[f"{fit}_floor"] * max(facts.unlit, 0.1) ** m.get(f"{fit}_u_floor", 0.0)
+            power = m[f"{fit}_p"]
             target = tolerance / MARGINS[method]
             r = dict(rules)
+            if fit != method:
+                r["local_term"] = ("the surface local term's pairs do not fit even at stride 8: the split narrows, "
+                                   "N planned with the icdf estimator's error" if local_stride < 0 else
+                                   "the split is off (the local bound reaches across the object): every source "
+                                   "sampled, N planned with the icdf estimator's error")
             if target > floor:
                 need = 4096.0 * (a / math.sqrt(target * target - floor * floor)) ** (1.0 / power) if a > 0 else 0.0
                 n = int(2 ** math.ceil(math.log2(max(MIN_SAMPLES, need))))
