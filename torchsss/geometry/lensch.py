@@ -740,7 +740,9 @@ def build_dense_throughput(
 
     Distances in float64, row blocks of about ``max_memory_mb`` of temporaries, stored in the mesh's dtype; the
     output is :math:`N^2` distances and keep flags (5 bytes a pair in float32; 43 MB for the default scene's 2,930
-    vertices, where the sparse pattern held 305 MB). See :func:`throughput_layout` for when it is the smaller one.
+    vertices, where the sparse throughput's buffers in :class:`~torchsss.modules.lensch.GlobalResponse`, distances,
+    source areas and four index arrays of its 6.4M entries, held 243 MB). See :func:`throughput_layout` for when it
+    is the smaller one.
 
     Args:
         mesh: Vertices in mm.
