@@ -317,9 +317,11 @@ def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int
     A receiver gathers the samples (the reference's, :attr:`SceneFacts.sources`) on the part of the surface within
     :math:`r_b`, about :math:`n\\,\\pi r_b^2 / A`; at stride ``s`` the renderer evaluates about
     :math:`P/s^2 + e\\sqrt{P}` receivers of the :math:`P` covered pixels, the second term the gaps and silhouettes it
-    evaluates exactly (``hybrid_local_edge``: 14.6, measured on the side-lit 30 mm marble torus at 128 x 128: 1,514
-    receivers at stride 2 of 2,910 covered pixels). The renderer's own count decides; this estimate is taken with a
-    headroom of ``hybrid_local_headroom`` (2) before a stride is predicted to fit.
+    evaluates exactly (``hybrid_local_edge``: 14.6, from the side-lit 30 mm marble torus at 128 x 128, a calibration
+    scene: the renderer listed 5.46M pairs at stride 2, about 1,500 receivers at this estimate's 3,600 pairs each,
+    where the planner counts 2,910 covered pixels). The renderer's own count decides; this estimate is taken with a
+    headroom of ``hybrid_local_headroom`` (2, set after the 50 mm marble bunny at 256 x 256 narrowed where the
+    estimate without it fitted) before a stride is predicted to fit.
     """
     m = {**MODEL, **(model or {})}
     if facts.local_bound_mm <= 0:
