@@ -10,7 +10,7 @@ the fused kernel's cold compile, setup, one frame and the files. Writes ``result
 
 Usage::
 
-    python benchmarks/bench_shared_meshes.py                  # 2% tolerance (about 40 minutes: igea's reference)
+    python benchmarks/bench_shared_meshes.py                  # 2% tolerance (about 6 minutes: igea's reference)
     python benchmarks/bench_shared_meshes.py --quick          # spot and teapot at 64x64
 """
 

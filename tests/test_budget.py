@@ -152,3 +152,20 @@ def test_bad_material_in_budget():
         chang_rp(0.01, 1.0, c=0.0)
     with pytest.raises(ValueError, match="width_mm"):
         splat_count(-1.0, 1.0, 1.0)
+
+
+def test_splat_spacing_for_several_eps_is_each_one():
+    """A sequence of eps is one batched bisection with the same answers as one call per eps; typed errors."""
+    sa, ss, eta = _mat("skin1")
+    values = [0.003, 0.01, 0.3]
+    many = splat_spacing(sa, ss, eta, values)
+    assert many.shape == (3, 3)
+    for row, eps in zip(many, values):
+        torch.testing.assert_close(row, splat_spacing(sa, ss, eta, eps), rtol=0, atol=0)
+    assert splat_spacing(0.0021, 2.19, 1.3, (0.01,)).shape == (1,)
+    with pytest.raises(ValueError, match="eps"):
+        splat_spacing(sa, ss, eta, [])
+    with pytest.raises(ValueError, match="eps"):
+        splat_spacing(sa, ss, eta, [0.01, 1.5])
+    with pytest.raises(TypeError, match="eps"):
+        splat_spacing(sa, ss, eta, [0.01, "a"])

@@ -127,6 +127,90 @@ def test_policy(monkeypatch):
     assert not use_compiled("k", ("meta",), 1e12, (x.to("meta"),))
 
 
+def test_expected_work_compiles_a_blocked_frame_at_once(monkeypatch):
+    """An announced frame of >= COLD_WORK compiles at its first block; nested blocks restore; typed errors."""
+    x = torch.zeros(3)
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    with fused.expected_work("k", COLD_WORK - 1):
+        assert not use_compiled("k", ("cpu",), 10, (x,))  # the whole frame is cheaper eager than a compile
+    with fused.expected_work("k", 2 * COLD_WORK):
+        with fused.expected_work("other", 0):  # another kernel's announcement does not count for "k"
+            assert use_compiled("k", ("a",), 10, (x,))
+        with fused.expected_work("k", 0):
+            assert not use_compiled("k", ("b",), 10, (x,))  # the innermost announcement counts
+        assert use_compiled("k", ("b",), 10, (x,))  # ... and the outer one is back
+    assert fused._EXPECTED == {}
+    assert not use_compiled("k", ("c",), 10, (x,))  # nothing announced: the ski-rental account
+    with pytest.raises(ValueError, match="work"):
+        with fused.expected_work("k", -1.0):
+            pass
+    with pytest.raises(TypeError, match="name"):
+        with fused.expected_work(3, 1.0):
+            pass
+
+
+def test_reference_frame_compiles_at_its_first_block(monkeypatch):
+    """reference_radiosity_at announces its frame: with a small COLD_WORK, every block of the frame is compiled."""
+    import torchsss.ops.reference as ref_ops
+    from torchsss.geometry import sphere
+    from torchsss.geometry.sampling import surface_samples
+    from torchsss.pipelines.reference import reference_radiosity_at
+
+    calls = []
+
+    def spy(*args, compiled=None, **kwargs):
+        calls.append(compiled)
+        return fused.dipole_pair_sum(*args, compiled=False, **kwargs)
+
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    monkeypatch.setattr(ref_ops, "dipole_pair_sum", spy)
+    samples = surface_samples(sphere(10.0, 2), 2.0)
+    n = samples.area.shape[0]
+    points = samples.position[:300]
+    e = torch.ones(n, 3)
+    with torch.no_grad():
+        monkeypatch.setattr(fused, "COLD_WORK", 300 * n)  # the frame pays for exactly one compile
+        out = reference_radiosity_at(points, samples, e, "marble", max_pairs=8 * n)  # blocks of 64 receivers
+        assert len(calls) == 5 and all(calls), calls
+        monkeypatch.setattr(fused, "_WARM", set())
+        monkeypatch.setattr(fused, "_EAGER_WORK", {})
+        monkeypatch.setattr(fused, "COLD_WORK", 300 * n + 1)  # it does not: eager throughout
+        calls.clear()
+        again = reference_radiosity_at(points, samples, e, "marble", max_pairs=8 * n)
+        assert calls == []
+    torch.testing.assert_close(out, again, rtol=1e-5, atol=0.0)
+
+
+def test_compile_config_trusts_the_isa_flags_and_retries(monkeypatch):
+    """Our compiles skip inductor's per-ISA probe builds unless the user set vec_isa_ok; a failure retries once."""
+    from torch._inductor import config
+
+    with config.patch({"cpp.vec_isa_ok": None}):
+        with fused._compile_config():
+            assert config.cpp.vec_isa_ok is True
+        assert config.cpp.vec_isa_ok is None
+        with config.patch({"cpp.vec_isa_ok": False}), fused._compile_config():
+            assert config.cpp.vec_isa_ok is False  # the user's choice stands
+        seen = []
+
+        def kernel(t):
+            seen.append(config.cpp.vec_isa_ok)
+            if len(seen) == 1:
+                raise RuntimeError("cannot build for a reported ISA")
+            return t + 1
+
+        kernel.torchsss_name, kernel.torchsss_eager = "flaky", lambda t: t - 1
+        monkeypatch.setattr(fused, "_BROKEN", {})
+        monkeypatch.setattr(fused, "_WARM", set())
+        out = fused._call(kernel, ("cpu",), torch.zeros(2))
+    assert seen == [True, None] and "flaky" not in fused._BROKEN  # retried with inductor's own probes
+    torch.testing.assert_close(out, torch.ones(2))
+
+
 def test_gradients_take_the_eager_path(monkeypatch):
     """With parameters that record, the integrator stays differentiable (the compiled path is inference only)."""
     monkeypatch.setenv("TORCHSSS_COMPILE", "1")

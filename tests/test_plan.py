@@ -311,20 +311,37 @@ def test_hybrid_split_narrowing_is_predicted_and_planned_as_the_all_sampled_esti
 
 
 def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
-    # the splat budget drops a fraction eps of every splat's energy, front-lit too: the predicted error is >= eps
-    # (a front-lit 5 mm chicken1 bunny at eps 0.03 measured 4.9%, the light-scaled term alone said 0.9%)
-    s = _scene(res=16, light=(0.0, 0.0, 1.0), material="chicken1", size=5.0)
-    facts = SceneFacts.from_scene(s)
-    for eps in (0.003, 0.01, 0.03, 0.1):
-        assert predict("splat", {"eps": eps, "oversample": 4.0}, facts, s.material)["error"] >= eps
+    # the splat budget drops the profile's energy between r_max(eps) and the object's diameter from every splat,
+    # front-lit too: the predicted error is at least that (closed form: eps itself on an object far wider than
+    # r_max), and nothing is dropped where r_max spans the object (a 5 mm chicken1 bunny, front-lit, measured 2.72%
+    # at eps 0.03 and 0.1 alike, every oversample: its error is not the truncation's)
+    from torchsss.physics.budget import profile_tail_fraction
+    from torchsss.plan import _Profile
+
+    for size in (5.0, 80.0):
+        s = _scene(res=16, light=(0.0, 0.0, 1.0), material="chicken1", size=size)
+        facts = SceneFacts.from_scene(s)
+        prof = _Profile.of(s.material)
+        for eps in (0.003, 0.01, 0.03, 0.1):
+            r, diameter = prof.r_max(eps), 2.0 * facts.radius_mm
+            cut = prof.tail_between(r, diameter)
+            mt = [t.double() for t in prof.mt]
+            t_r = profile_tail_fraction(torch.tensor(r, dtype=torch.float64), *mt)
+            t_d = profile_tail_fraction(torch.tensor(diameter, dtype=torch.float64), *mt)
+            assert cut == pytest.approx(float((t_r - t_d).clamp_min(0).max()), rel=1e-9)
+            assert cut <= eps * (1 + 1e-6) and (cut == 0.0) == (r >= diameter)
+            err = predict("splat", {"eps": eps, "oversample": 4.0}, facts, s.material)["error"]
+            assert err >= max(cut, MODEL["splat_floor"] * 0.999)
+        assert prof.tail_between(prof.r_max(0.03), 1e6) == pytest.approx(0.03, rel=1e-6)  # an unbounded object
     # a loose tolerance plans no fewer samples than the calibration measured (the N^-p law is not extrapolated)
     for method in ("icdf", "hybrid"):
         assert plan(s, 0.5, methods=[method]).knobs["samples"] >= 1024
 
 
 def test_rule_splat_budget_tighter_for_lower_tolerance():
-    s = _scene(res=32)
-    loose, tight = plan(s, 0.2, methods=["splat"]), plan(s, 0.04, methods=["splat"])
+    # a back-lit 40 mm skin1 spot: the profile's tail beyond r_max lies on the object, the budget matters
+    s = _scene(mesh="spot", size=40.0, res=32, light=(-0.5, 0.4, -1.0))
+    loose, tight = plan(s, 0.3, methods=["splat"]), plan(s, 0.04, methods=["splat"])
     assert loose.method == tight.method == "splat"
     mesh = s.load_mesh()
     grid = {id(p): splat_grid(mesh, s.material, p.knobs["eps"], oversample=p.knobs["oversample"])
@@ -411,8 +428,15 @@ def test_lensch_is_not_costed_below_its_floor():
     q = plan(s, 0.02, methods=["lensch"])
     assert q.method in ("lensch", "reference") and q.facts["throughput_entries"] > 0
     assert any(c["method"] == "lensch" for c in q.candidates)
-    loose = plan(s, 0.5)
-    assert any(c["method"] == "lensch" for c in loose.candidates) and "lensch" not in loose.reasons
+    # above its floor it is costed unless its setup and frames alone exceed the best other plan (then its
+    # throughput estimate is skipped too, and the reason says so)
+    loose = plan(_scene(res=16, size=21.0), 0.5)
+    assert loose.predicted_total_s < 3.0 and loose.facts["throughput_entries"] == -1
+    assert "exceed the best other plan" in loose.reasons["lensch"]
+    assert not any(c["method"] == "lensch" for c in loose.candidates)
+    free = plan(s, 0.5, model={"lensch_s0": 0.0, "lensch_f0": 0.0})  # no lower bound: always costed
+    assert any(c["method"] == "lensch" for c in free.candidates) and "lensch" not in free.reasons
+    assert free.facts["throughput_entries"] > 0
 
 
 def test_measured_trade_overrides_predictions():
@@ -491,3 +515,16 @@ def test_cli_plan_and_auto_render(tmp_path, capsys):
     assert main(["render", str(path), "--method", "splat", "--eps", "0.2", "--out", str(tmp_path / "t.exr"),
                  "--no-progress"]) == 0
     assert json.loads((tmp_path / "t.json").read_text())["knobs"]["eps"] == 0.2
+
+
+def test_scene_facts_are_cached_per_scene_and_mesh():
+    """Planning a scene again reuses its facts; another scene, mesh or a throughput request recomputes them."""
+    s = _scene(res=16, size=23.0)
+    a = SceneFacts.from_scene(s, throughput=False)
+    assert SceneFacts.from_scene(s, throughput=False) is a and a.throughput_entries == -1
+    full = SceneFacts.from_scene(s)  # the throughput was not estimated: recomputed with it
+    assert full is not a and full.throughput_entries > 0 and dataclasses.replace(full, throughput_entries=-1) == a
+    assert SceneFacts.from_scene(s, throughput=False) is full  # a superset serves
+    other = SceneFacts.from_scene(dataclasses.replace(s, size_mm=24.0), throughput=False)
+    assert other.size_mm > a.size_mm
+    assert SceneFacts.from_scene(s, sphere(11.5, 2), throughput=False).faces != a.faces

@@ -32,11 +32,12 @@ The kernels:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import warnings
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import Tensor
@@ -54,13 +55,15 @@ __all__ = [
     "dipole_pair_sum_eager",
     "dipole_taps",
     "dipole_taps_eager",
+    "expected_work",
     "is_warm",
     "use_compiled",
 ]
 
 #: Eager work (e.g. source-receiver pairs) spent on a variant in this process after which it is compiled
-#: (``auto`` mode): at the eager path's 6-10 Mpairs/s this is 7-11 s, about one cold compile.
-COLD_WORK = 1 << 26
+#: (``auto`` mode): at the eager path's 6-10 Mpairs/s this is 3.5-6 s, about one cold compile (5-7 s on the 2-core
+#: CPU machine with an empty inductor cache, :func:`_compile_config`).
+COLD_WORK = 1 << 25
 #: Work above which an already compiled variant is used (``auto`` mode); below it the call overhead dominates.
 WARM_WORK = 1 << 14
 
@@ -77,6 +80,7 @@ _COMPILED: dict[str, Callable] = {}
 _WARM: set[tuple] = set()
 _EAGER_WORK: dict[tuple, float] = {}
 _BROKEN: dict[str, str] = {}
+_EXPECTED: dict[str, float] = {}
 
 
 def compile_mode() -> str:
@@ -95,7 +99,9 @@ def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, 
     In ``auto`` mode a variant not yet compiled in this process stays eager until the eager work spent on it
     (this call's included) reaches :data:`COLD_WORK`, about one compile's time (the ski-rental rule: at most twice
     the cost of the better choice in hindsight); a compiled variant serves every call of :data:`WARM_WORK` or more.
-    A call answered False is counted as eager work.
+    A call answered False is counted as eager work. Inside :func:`expected_work` the call counts as the whole
+    announced work (a caller that cuts one frame into blocks compiles at its first block when the frame pays for
+    a compile, instead of spending :data:`COLD_WORK` eagerly first).
     """
     if not _eligible(name, tensors):
         return False
@@ -105,11 +111,38 @@ def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, 
     if key in _WARM:
         return work >= WARM_WORK
     spent = _EAGER_WORK.get(key, 0.0) + float(work)
-    if spent >= COLD_WORK:
+    if spent >= COLD_WORK or _EXPECTED.get(name, 0.0) >= COLD_WORK:
         _WARM.add(key)  # the caller compiles now: later calls of this variant find it warm
         return True
     _EAGER_WORK[key] = spent
     return False
+
+
+@contextlib.contextmanager
+def expected_work(name: str, work: float) -> Iterator[None]:
+    """Announce that the calls of kernel ``name`` inside this block add up to about ``work`` units.
+
+    :func:`use_compiled` then decides at the first call as if the whole work came at once (``auto`` mode: compile
+    at once when ``work`` reaches :data:`COLD_WORK`), so a frame cut into blocks does not spend a compile's worth
+    of eager work before it compiles. Nested blocks: the innermost announcement counts.
+
+    Examples:
+        >>> with expected_work("dipole_pair_sum", 1e9):
+        ...     pass
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected a kernel name (str), got {type(name).__name__}")
+    if not (isinstance(work, (int, float)) and not isinstance(work, bool) and math.isfinite(work) and work >= 0):
+        raise ValueError(f"work: expected a finite number >= 0, got {work!r}")
+    before = _EXPECTED.get(name)
+    _EXPECTED[name] = float(work)
+    try:
+        yield
+    finally:
+        if before is None:
+            _EXPECTED.pop(name, None)
+        else:
+            _EXPECTED[name] = before
 
 
 def is_warm(name: str, *, device: str = "cpu", dtype: torch.dtype = torch.float32, split: bool | None = None) -> bool:
@@ -145,6 +178,33 @@ def _compiled(name: str, eager: Callable) -> Callable:
     return fn
 
 
+def _compile_config() -> contextlib.AbstractContextManager:
+    """Inductor settings for our compiles: trust the CPU's ISA flags instead of building a probe per ISA.
+
+    With an empty inductor cache, inductor's first CPU compile in a process builds and loads a probe program for
+    every vector ISA the CPU reports (AMX, AVX512-VNNI, AVX512, AVX2: 6-8 s of a 12-13 s cold compile on the 2-core
+    CPU machine); ``cpp.vec_isa_ok = True`` takes the CPU's flags for it (the same ISA is picked here; a cold
+    compile of :func:`dipole_pair_sum` then takes 5-6 s). Left alone when the user set ``vec_isa_ok``
+    (``TORCHINDUCTOR_VEC_ISA_OK``); :func:`_call` retries with inductor's own probes if a compile fails this way.
+    """
+    try:
+        from torch._inductor import config
+    except Exception:  # no inductor: the compile fails and falls back as usual
+        return contextlib.nullcontext()
+    if getattr(config.cpp, "vec_isa_ok", False) is not None:
+        return contextlib.nullcontext()
+    return config.patch({"cpp.vec_isa_ok": True})
+
+
+def _reset_isa() -> None:
+    """Forget inductor's ISA list (computed with trusted flags) so that a retry probes the compiler."""
+    try:
+        from torch._inductor import cpu_vec_isa
+        cpu_vec_isa.valid_vec_isa_list.cache_clear()
+    except Exception:
+        pass
+
+
 def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
     """``kernel(*args)``; a compiled kernel that fails warns once and falls back to its eager form for good."""
     name = getattr(kernel, "torchsss_name", None)
@@ -153,7 +213,14 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
     if name in _BROKEN:
         return kernel.torchsss_eager(*args)
     try:
-        out = kernel(*args)
+        try:
+            with _compile_config():
+                out = kernel(*args)
+        except Exception:
+            if isinstance(_compile_config(), contextlib.nullcontext):
+                raise
+            _reset_isa()  # perhaps the compiler cannot build a reported ISA: inductor's own probes decide
+            out = kernel(*args)
     except Exception as err:  # a missing compiler or an unsupported platform: fall back to eager for good
         _BROKEN[name] = f"{type(err).__name__}: {err}"
         warnings.warn(f"torchsss: compiling {name} failed ({_BROKEN[name][:200]}); using the eager path",

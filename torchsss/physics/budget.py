@@ -62,7 +62,7 @@ def _check_eps(eps: float, name: str = "eps") -> float:
     return float(eps)
 
 
-def _bisect_increasing(f, lo: Tensor, hi: Tensor, target: float) -> Tensor:
+def _bisect_increasing(f, lo: Tensor, hi: Tensor, target: float | Tensor) -> Tensor:
     """Smallest x in [lo, hi] (elementwise) with f(x) >= target, for f non-decreasing; geometric steps when lo > 0."""
     for _ in range(_BISECT_STEPS):
         mid = torch.where(lo > 0, torch.sqrt(lo * hi), 0.5 * (lo + hi))
@@ -172,30 +172,42 @@ def splat_spacing(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01) -> Tensor:
     whose width is set by the depth :math:`z_r = 1/\\sigma_t'` of the real source. Roughly
     :math:`h \\approx 2\\pi z_r / \\ln(4/\\epsilon)`; see :func:`splat_alias_error` for the exact criterion.
 
+    ``eps`` may also be a sequence of :math:`E` values (one bisection for all of them: the planner asks for nine).
+
     Returns:
-        :math:`h` in mm, the material's broadcast shape.
+        :math:`h` in mm, the material's broadcast shape; :math:`(E, *)` for a sequence of ``eps``.
 
     Examples:
         >>> h = splat_spacing(0.0021, 2.19, 1.3, eps=0.01)      # marble, red
         >>> 0.4 < h.item() < 0.8
         True
+        >>> splat_spacing(0.0021, 2.19, 1.3, eps=[0.01, 0.1]).shape
+        torch.Size([2])
     """
-    eps = _check_eps(eps)
+    many = isinstance(eps, (list, tuple))
+    if many:
+        if not eps:
+            raise ValueError("eps: expected at least one value in (0, 1), got an empty sequence")
+        values = [_check_eps(e) for e in eps]
+    else:
+        values = [_check_eps(eps)]
     sa, ss, et, out_dtype = _material64(sigma_a, sigma_s_prime, eta)
     terms = dipole_terms(sa, ss, et)
+    target = torch.tensor(values, dtype=torch.float64).reshape(-1, *([1] * sa.dim()))
 
     def alias(h: Tensor) -> Tensor:
         return splat_alias_error(h, sa, ss, et)
 
-    lo = terms.z_r * 1e-3
-    hi = terms.z_r.clone()
+    lo = (terms.z_r * 1e-3).expand(target.shape[:1] + terms.z_r.shape)
+    hi = terms.z_r.expand_as(lo).clone()
     for _ in range(_MAX_DOUBLINGS):
-        grow = alias(hi) < eps
+        grow = alias(hi) < target
         if not bool(grow.any()):
             break
         hi = torch.where(grow, 2.0 * hi, hi)
     # alias error increases with h: the largest h with alias <= eps is the boundary of {alias >= eps}.
-    return _bisect_increasing(alias, lo, hi, eps).to(out_dtype)
+    h = _bisect_increasing(alias, lo, hi, target).to(out_dtype)
+    return h if many else h[0]
 
 
 def splat_overlap(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01, rule: str = "spacing") -> Tensor:

@@ -42,6 +42,7 @@ from torchsss.geometry.sampling import SurfaceSamples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.geometry.visibility import point_inside, ray_visibility
 from torchsss.modules.material import material_module
+from torchsss.ops.fused import expected_work
 from torchsss.ops.reference import reference_radiosity
 from torchsss.physics.fresnel import check_fresnel, exit_radiance
 from torchsss.physics.materials import Material
@@ -166,7 +167,9 @@ def reference_radiosity_at(
     n = max(1, src_pos.shape[1])
     block = max(64, min(points.shape[0], (max_pairs * 8) // n))
     out = []
-    with tqdm(total=points.shape[0], desc="reference B(x_o)", unit="px", disable=not progress, leave=False) as bar:
+    # the blocks add up to one frame's pairs: the fused kernel compiles at the first block when they pay for it
+    with expected_work("dipole_pair_sum", float(points.shape[0]) * n), \
+            tqdm(total=points.shape[0], desc="reference B(x_o)", unit="px", disable=not progress, leave=False) as bar:
         for start in range(0, points.shape[0], block):
             dst = points[start:start + block].unsqueeze(0)
             b = reference_radiosity(src_pos, src_e, src_a, dst, profile, max_pairs=max_pairs,
