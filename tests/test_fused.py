@@ -10,6 +10,7 @@ from torchsss import DipoleMaterial
 from torchsss.ops import fused
 from torchsss.ops.fused import COLD_WORK, WARM_WORK, dipole_pair_sum, dipole_pair_sum_eager, use_compiled
 from torchsss.ops.reference import reference_radiosity
+from torchsss.physics import dipole_rd
 
 
 def _scene(b: int, m: int, n: int, dtype: torch.dtype, seed: int = 0):
@@ -343,3 +344,52 @@ def test_splat_renderer_compiled_matches_eager(monkeypatch):
     out = r.render(light, cam).radiance
     assert any(k[0] == "dipole_taps" for k in fused._WARM)
     torch.testing.assert_close(out, eager, rtol=1e-4, atol=1e-6 * float(eager.max()))
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_truncated_pair_sum_matches_a_loop(monkeypatch, compiled):
+    """r_max (the splat's disk on the scaled distance): only pairs with r M_d <= r_max count; eager and compiled."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1" if compiled else "0")
+    src, e, area, dst = _scene(1, 40, 70, torch.float32 if compiled else torch.float64)
+    mat = DipoleMaterial.from_preset("marble", dtype=src.dtype)
+    coeffs = tuple(t.detach() for t in (mat.sigma_a, mat.sigma_s_prime, mat.eta))
+    g = torch.Generator().manual_seed(3)
+    md = (0.5 + torch.rand(1, 70, 3, generator=g)).to(src.dtype)
+    w = e * area[..., None]
+    with torch.no_grad():
+        out = dipole_pair_sum(dst, src, w, *coeffs, md, r_max=6.0)
+        want = torch.zeros(1, 40, 3, dtype=torch.float64)
+        for i in range(40):
+            for j in range(70):
+                r = (dst[0, i] - src[0, j]).norm().double() * md[0, j].double()  # (3,) per channel
+                rd = torch.stack([dipole_rd(r[c].reshape(1, 1), *(t.double().reshape(-1).expand(3)[c]
+                                                                  for t in coeffs)).reshape(-1)[0] for c in range(3)])
+                want[0, i] += torch.where(r <= 6.0, rd * w[0, j].double(), torch.zeros(3, dtype=torch.float64))
+    kept = int(((dst[0, :, None] - src[0, None]).norm(dim=-1)[..., None] * md[0, None] <= 6.0).sum())
+    assert 0 < kept < 40 * 70 * 3  # the disk cuts some pairs and keeps others
+    torch.testing.assert_close(out.double(), want, rtol=1e-5 if compiled else 1e-10, atol=1e-12)
+    if compiled:
+        assert fused.is_warm("dipole_pair_sum", truncated=True) and any("truncated" in k for k in fused._WARM)
+
+
+def test_would_compile_answers_without_side_effects(monkeypatch):
+    """would_compile mirrors use_compiled's policy and leaves its accounts alone."""
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
+    monkeypatch.setattr(fused, "_BROKEN", {})
+    monkeypatch.setenv("TORCHSSS_COMPILE", "auto")
+    assert not fused.would_compile("dipole_pair_sum", COLD_WORK - 1)
+    assert fused.would_compile("dipole_pair_sum", COLD_WORK)
+    with fused.expected_work("dipole_pair_sum", COLD_WORK):
+        assert fused.would_compile("dipole_pair_sum", 1)
+    fused._WARM.add(("dipole_pair_sum", "cpu", torch.float32, 1, 3, None, False, "truncated", False))
+    assert fused.would_compile("dipole_pair_sum", WARM_WORK, truncated=True)
+    assert not fused.would_compile("dipole_pair_sum", WARM_WORK - 1, truncated=True)
+    assert not fused.would_compile("dipole_pair_sum", WARM_WORK, truncated=False)  # only the truncated one is warm
+    assert fused._EAGER_WORK == {}
+    monkeypatch.setenv("TORCHSSS_COMPILE", "0")
+    assert not fused.would_compile("dipole_pair_sum", 1e12)
+    monkeypatch.setenv("TORCHSSS_COMPILE", "1")
+    assert fused.would_compile("dipole_pair_sum", 1)
+    fused._BROKEN["dipole_pair_sum"] = "no compiler"
+    assert not fused.would_compile("dipole_pair_sum", 1e12)

@@ -1,5 +1,5 @@
-"""splat_radiosity (Shah 6.4 image-space splatting): window and tile paths vs the all-pairs reference, gradients,
-extremes, typed errors, ONNX export of the window path."""
+"""splat_radiosity (Shah 6.4 image-space splatting): window, tile and gather paths vs the all-pairs reference,
+gradients, extremes, typed errors, ONNX export of the window path."""
 
 from __future__ import annotations
 
@@ -11,12 +11,13 @@ import pytest
 import torch
 
 import torchsss.ops.splat as splat_mod
+from torchsss import DipoleMaterial
 from torchsss.geometry.camera import Camera, transform_points
 from torchsss.ops.reference import reference_radiosity
 from torchsss.ops.splat import splat_radiosity, splat_window_size
 from torchsss.physics import dipole_rd, preset
 
-METHODS = ["window", "tile"]
+METHODS = ["window", "tile", "gather"]
 F64 = torch.float64
 
 
@@ -69,9 +70,18 @@ def _table_profiles(sa, ss, eta):
     return [functools.partial(dipole_rd, sigma_a=sa2[k], sigma_s_prime=ss2[k], eta=et[k]) for k in range(m)]
 
 
+def _dipole_profiles(sa, ss, eta):
+    """The material table as plain-dipole modules (the gather form's fused pair sum needs them), frozen."""
+    sa2, ss2 = sa.reshape(-1, sa.shape[-1]), ss.reshape(-1, ss.shape[-1])
+    m = sa2.shape[0]
+    et = torch.as_tensor(eta, dtype=sa2.dtype).reshape(-1).expand(m)
+    return [DipoleMaterial(sa2[k], ss2[k], et[k], dtype=sa2.dtype).requires_grad_(False) for k in range(m)]
+
+
 def _op(src_pos, flux, dst, mask, vp, sa, ss, eta, rmax, **kw):
-    """splat_radiosity with the material given as coefficient tables (dipole profiles)."""
-    return splat_radiosity(src_pos, flux, dst, mask, vp, _table_profiles(sa, ss, eta), rmax, **kw)
+    """splat_radiosity with the material given as coefficient tables (dipole profiles; modules for the gather)."""
+    make = _dipole_profiles if kw.get("method") == "gather" else _table_profiles
+    return splat_radiosity(src_pos, flux, dst, mask, vp, make(sa, ss, eta), rmax, **kw)
 
 
 def _materials(names, dtype=F64):
@@ -331,7 +341,8 @@ def test_offscreen_and_behind_camera_splats_contribute_nothing(method):
     more_flux = torch.cat([flux, torch.ones(2, 4, 3, dtype=F64)], 1)
     base = _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
     out = _op(more_pos, more_flux, dst, mask, vp, sa, ss, eta, 3.0, method=method)
-    torch.testing.assert_close(out, base, rtol=0, atol=0)
+    # the gather sums every pair (zeros beyond reach): another summation order, not another value
+    torch.testing.assert_close(out, base, rtol=1e-14 if method == "gather" else 0, atol=0)
     only_far = _op(far, torch.ones(2, 4, 3, dtype=F64), dst, mask, vp, sa, ss, eta, 3.0, method=method)
     assert torch.equal(only_far, torch.zeros_like(only_far))
 
@@ -372,7 +383,9 @@ def test_nonfinite_positions_outside_the_mask_do_not_leak(method):
         out, _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 4.0, method=method), rtol=0, atol=0
     )
     out.sum().backward()
-    assert bool(torch.isfinite(f.grad).all()) and bool(torch.isfinite(sa_g.grad).all())
+    assert bool(torch.isfinite(f.grad).all())
+    if method != "gather":  # (the gather's profiles are modules built from sa's values: no gradient reaches sa_g)
+        assert bool(torch.isfinite(sa_g.grad).all())
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -505,8 +518,15 @@ def test_gradcheck(method):
         )
 
     # fast mode (random projections of the Jacobian) keeps this quick; the full gradients are compared with the
-    # reference's below
-    assert torch.autograd.gradcheck(f, (flux, sa, ss, eta, mi), fast_mode=True)
+    # reference's below. The gather's profiles are modules built from the coefficients' values (their own
+    # parameters: test_gather_gradients_reach_the_material_module), so there the coefficients are held fixed.
+    wrt = (flux, sa, ss, eta, mi) if method != "gather" else (flux, mi)
+    if method == "gather":
+        def f_g(flux, mi):
+            return f(flux, sa.detach(), ss.detach(), eta.detach(), mi)
+        assert torch.autograd.gradcheck(f_g, wrt, fast_mode=True)
+    else:
+        assert torch.autograd.gradcheck(f, wrt, fast_mode=True)
     # the distance scale moves the truncation edge: check it with every pair inside r_max
     md = (0.5 + torch.rand(1, 6, 1, generator=gen, dtype=F64)).requires_grad_()
 
@@ -531,10 +551,59 @@ def test_gradcheck(method):
     out = f(flux, sa, ss, eta, mi)
     ref = _reference(src_pos, flux, dst, mask, sa, ss, eta, rmax, material=mat, mi=mi)
     for a, b in zip(
-        torch.autograd.grad(out.square().sum(), (flux, sa, ss, eta, mi)),
-        torch.autograd.grad(ref.square().sum(), (flux, sa, ss, eta, mi)),
+        torch.autograd.grad(out.square().sum(), wrt),
+        torch.autograd.grad(ref.square().sum(), wrt),
     ):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-14)
+
+
+def test_gather_gradients_reach_the_material_module():
+    """The gather form (eager while autograd records) differentiates the module's parameters as the tile form does."""
+    gen, vp, dst, mask, src_pos = _small_scene()
+    flux = torch.rand(1, 6, 3, generator=gen, dtype=F64)
+    grads = {}
+    for method in ("tile", "gather"):
+        mat = DipoleMaterial.from_preset("skin1", dtype=F64)
+        out = splat_radiosity(src_pos, flux, dst, mask, vp, mat, 2.5, method=method)
+        out.square().sum().backward()
+        grads[method] = [p.grad for p in mat.parameters()]
+        assert all(g is not None and bool((g != 0).any()) for g in grads[method])
+    for a, b in zip(grads["tile"], grads["gather"]):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("compiled", ["0", "1"])
+def test_auto_picks_the_fused_gather_where_r_max_spans_the_pixels(monkeypatch, compiled):
+    """auto: the gather where most pairs are in reach (inference, compilation allowed), else tile / window; the
+    compiled gather equals the eager forms in float32."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", compiled)
+    calls = []
+    real = splat_mod._splat_gather
+    monkeypatch.setattr(splat_mod, "_splat_gather", lambda *a: calls.append(1) or real(*a))
+    src_pos, flux, dst, mask, vp = _plane_scene(s=40, dtype=torch.float32)
+    mat = DipoleMaterial.from_preset("skin1").requires_grad_(False)
+    with torch.no_grad():
+        wide = splat_radiosity(src_pos, flux, dst, mask, vp, mat, 30.0)  # r_max spans the planes
+        assert len(calls) == (1 if compiled == "1" else 0)  # compilation off: the per-pair paths
+        narrow = splat_radiosity(src_pos, flux, dst, mask, vp, mat, 0.5)  # a few pairs in reach
+        assert len(calls) == (1 if compiled == "1" else 0)
+        tile = splat_radiosity(src_pos, flux, dst, mask, vp, mat, 30.0, method="tile")
+        torch.testing.assert_close(wide, tile, rtol=2e-5, atol=1e-9)
+        assert float(narrow.amax()) > 0
+    # autograd records through the flux: the per-pair paths
+    f = flux.clone().requires_grad_()
+    splat_radiosity(src_pos, f, dst, mask, vp, mat, 30.0)
+    assert len(calls) == (1 if compiled == "1" else 0)
+    share = splat_mod._reach_share({"pos": src_pos[0], "reach": torch.full((40,), 30.0)}, dst[0].permute(1, 2, 0)
+                                   .reshape(-1, 3), mask[0].reshape(-1))
+    assert share == 1.0
+
+
+def test_gather_needs_a_plain_dipole():
+    src_pos, flux, dst, mask, vp = _plane_scene(s=4)
+    sa, ss, eta = preset("skin1").tensors(F64)
+    with pytest.raises(ValueError, match="plain dipole"):
+        splat_radiosity(src_pos, flux, dst, mask, vp, _table_profiles(sa, ss, eta), 2.0, method="gather")
 
 
 # -- typed errors ------------------------------------------------------------------------------------------------------
@@ -600,7 +669,8 @@ def test_bad_inputs():
         call(src_distance_scale=torch.zeros(2, 4, 1))
     with pytest.raises(ValueError, match=r"src_irradiance_scale: expected finite values >= 0"):
         call(src_irradiance_scale=-torch.ones(2, 4, 1))
-    with pytest.raises(ValueError, match=r"method: expected one of \('auto', 'window', 'tile'\), got 'scatter'"):
+    with pytest.raises(ValueError,
+                       match=r"method: expected one of \('auto', 'window', 'tile', 'gather'\), got 'scatter'"):
         call(method="scatter")
     with pytest.raises(TypeError, match=r"method: expected a str, got int"):
         call(method=1)

@@ -76,6 +76,7 @@ from torchsss.geometry.mesh import Mesh, decimate, surface_deviation
 from torchsss.geometry.sampling import faces_for_spacing
 from torchsss.modules.material import material_module
 from torchsss.ops.fused import COLD_WORK, WARM_WORK, compile_mode, is_warm
+from torchsss.ops.splat import GATHER_REACH
 from torchsss.physics.budget import chang_rp, profile_tail_fraction, splat_alias_error, splat_spacing
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
@@ -571,12 +572,14 @@ def _pair_time(pairs: float, eager_t_pair: float, m: dict, warm: bool = False) -
 def warm_kernels(device: str = "cpu", dtype: torch.dtype = torch.float32) -> frozenset[str]:
     """The fused dipole pair sums this process has already compiled: ``"plain"`` and ``"split"``.
 
-    The reference and icdf run the plain pair sum, the hybrid the split one. :func:`plan` charges a warm one no
+    The reference and icdf run the plain pair sum, the hybrid the split one, splat's gather the truncated one
+    (``"truncated"``). :func:`plan` charges a warm one no
     compile (a fresh ``python -m torchsss render`` pays one; a training loop or a notebook that rendered before
     does not).
     """
-    return frozenset(kind for kind, split in (("plain", False), ("split", True))
-                     if is_warm("dipole_pair_sum", device=device, dtype=dtype, split=split))
+    return frozenset(kind for kind, split, trunc in (("plain", False, False), ("split", True, False),
+                                                     ("truncated", False, True))
+                     if is_warm("dipole_pair_sum", device=device, dtype=dtype, split=split, truncated=trunc))
 
 
 def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: int | None = None,
@@ -632,8 +635,16 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
                         + (max(m["splat_trunc"] * u ** m["splat_u_trunc"] * d ** m["splat_q_depth"], 1.0) * cut) ** 2)
         footprint = min(px, math.pi * (r / facts.pixel_mm) ** 2)
         splats = 0.5 * grid * grid
-        frame = m["splat_t"] * splats * footprint * lights + m["splat_t_texel"] * grid * grid * lights + m["splat_f0"]
-        return {"error": err, "setup_s": m["splat_s0"] + dec_s, "frame_s": frame}
+        pairs_s, compile_s = m["splat_t"] * splats * footprint * lights, 0.0
+        gather = px * splats * lights
+        mode = compile_mode()
+        if footprint >= GATHER_REACH * px and mode != "off" and (
+                mode == "on" or "truncated" in warm or gather >= COLD_WORK):
+            # splat_radiosity's gather form: every (pixel, splat) pair in the fused pair sum, its truncated
+            # variant compiled once per process
+            pairs_s, compile_s = _pair_time(gather, m["ref_t_pair"], m, "truncated" in warm)
+        frame = pairs_s + m["splat_t_texel"] * grid * grid * lights + m["splat_f0"]
+        return {"error": err, "setup_s": m["splat_s0"] + dec_s + compile_s, "frame_s": frame, "compile_s": compile_s}
     if method in ("icdf", "hybrid"):
         u, d = max(facts.unlit, 0.1), depth(facts)
         n = int(knobs.get("samples", 4096))

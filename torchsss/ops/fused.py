@@ -58,6 +58,7 @@ __all__ = [
     "expected_work",
     "is_warm",
     "use_compiled",
+    "would_compile",
 ]
 
 #: Eager work (e.g. source-receiver pairs) spent on a variant in this process after which it is compiled
@@ -118,6 +119,28 @@ def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, 
     return False
 
 
+def would_compile(name: str, work: float, **variant: object) -> bool:
+    """Whether a call of kernel ``name`` with ``work`` units would run compiled now (no side effects).
+
+    As :func:`use_compiled` for an eligible call: ``on``: yes; ``off`` or a broken kernel: no; ``auto``: when a
+    matching variant is warm (``variant``: the filters of :func:`is_warm`, e.g. ``truncated=True``) and the work is
+    at least :data:`WARM_WORK`, or the work (or the announced :func:`expected_work`) reaches :data:`COLD_WORK`.
+    A caller that chooses between a compiled form and another path asks this first.
+
+    Examples:
+        >>> would_compile("dipole_pair_sum", 0) in (True, False)
+        True
+    """
+    mode = compile_mode()
+    if mode == "off" or name in _BROKEN:
+        return False
+    if mode == "on":
+        return True
+    if is_warm(name, **variant):
+        return work >= WARM_WORK
+    return work >= COLD_WORK or _EXPECTED.get(name, 0.0) >= COLD_WORK
+
+
 @contextlib.contextmanager
 def expected_work(name: str, work: float) -> Iterator[None]:
     """Announce that the calls of kernel ``name`` inside this block add up to about ``work`` units.
@@ -145,19 +168,21 @@ def expected_work(name: str, work: float) -> Iterator[None]:
             _EXPECTED[name] = before
 
 
-def is_warm(name: str, *, device: str = "cpu", dtype: torch.dtype = torch.float32, split: bool | None = None) -> bool:
+def is_warm(name: str, *, device: str = "cpu", dtype: torch.dtype = torch.float32, split: bool | None = None,
+            truncated: bool | None = None) -> bool:
     """Whether this process has already compiled a variant of kernel ``name`` on ``device`` in ``dtype``.
 
     The planner (:func:`torchsss.plan.plan`) charges no compile to a method whose kernel is warm. ``split`` (for
     ``dipole_pair_sum``): only variants with (True) or without (False) the local/global split count; None: any.
-    Every variant key starts with (device type, dtype); those of ``dipole_pair_sum`` end with the split flag.
+    ``truncated`` likewise for the splat's truncated gather (a variant of its own). Every variant key starts with
+    (device type, dtype); those of ``dipole_pair_sum`` end with the split flag, after ``"truncated"`` if truncated.
 
     Examples:
         >>> is_warm("no_such_kernel")
         False
     """
     return any(k[0] == name and k[1] == device and k[2] == dtype and (split is None or k[-1] is split)
-               for k in _WARM)
+               and (truncated is None or ("truncated" in k) is truncated) for k in _WARM)
 
 
 def _eligible(name: str, tensors: tuple[Tensor, ...]) -> bool:
@@ -326,10 +351,11 @@ def dipole_taps(r: Tensor, flux: Tensor, r_max: Tensor, sigma_a: Tensor, sigma_s
 
 def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
                           eta: Tensor, distance_scale: Tensor | None = None, src_ids: Tensor | None = None,
-                          dst_ids: Tensor | None = None, split: Tensor | None = None) -> Tensor:
+                          dst_ids: Tensor | None = None, split: Tensor | None = None,
+                          r_max: Tensor | None = None) -> Tensor:
     """The eager form of :func:`dipole_pair_sum` (materialises :math:`(B, C, M, N)`: small inputs only).
 
-    Same arguments and result as :func:`dipole_pair_sum`, no validation.
+    Same arguments and result as :func:`dipole_pair_sum` (``split`` and ``r_max`` as tensors), no validation.
     """
     st4 = (sigma_a + sigma_s_prime)[None, :, None, None]
     r2 = sum((dst_pos[:, :, None, k] - src_pos[:, None, :, k]) ** 2 for k in range(3))[:, None]  # (B, 1, M, N)
@@ -337,6 +363,8 @@ def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigm
         md = distance_scale.transpose(1, 2)[:, :, None, :]       # (B, 1|C, 1, N)
         r2 = r2 * (md * md)
     rd = _dipole_rd(r2 * (st4 * st4), sigma_a, sigma_s_prime, eta, (1, -1, 1, 1))  # (B, C, M, N)
+    if r_max is not None:  # Shah's truncation of the scaled distance (the splat's disk)
+        rd = torch.where(r2 <= r_max * r_max, rd, torch.zeros_like(rd))
     if src_ids is not None:
         same = (dst_ids[:, None, :, None] == src_ids[:, None, None, :]).to(rd.dtype)  # (B, 1, M, N)
         if split is None:
@@ -351,7 +379,7 @@ def dipole_pair_sum_eager(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigm
 def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: Tensor, sigma_s_prime: Tensor,
                     eta: Tensor, distance_scale: Tensor | None = None, *, src_ids: Tensor | None = None,
                     dst_ids: Tensor | None = None, split: tuple[float, float, float] | None = None,
-                    compiled: bool | None = None) -> Tensor:
+                    r_max: float | None = None, compiled: bool | None = None) -> Tensor:
     """:math:`B_{b,m,c} = \\sum_n w_{b,n,c}\\, R_{d,c}(|x_{b,m} - y_{b,n}|\\, M_{d,b,n})`: the dipole pair sum, fused.
 
     The analytic dipole of :func:`torchsss.dipole_rd` (Jensen et al. 2001, with the same bounded-factor form in
@@ -375,6 +403,8 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         split: optional ``(r_p, k, bound)`` of Chang's split (:class:`~torchsss.modules.chang.ChangLocalProfile`):
             with ids, a pair's kernel is :math:`R_d (1 - W_l^b(r M_d)\\,[\\xi_i = \\xi_o])` (the hybrid's global
             part: sources in another chart stay whole) instead of :math:`R_d [\\xi_i = \\xi_o]`.
+        r_max: optional truncation radius in mm: a pair contributes only where :math:`|x - y| M_d \\le r_{max}`
+            (Shah's splat disk; :func:`~torchsss.ops.splat.splat_radiosity`'s gather form).
         compiled: None: :func:`use_compiled` decides; True: compiled wherever compilation is allowed at all (the
             caller decided, e.g. from the work of a whole frame); False: eager.
 
@@ -395,14 +425,16 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         raise ValueError("src_ids, dst_ids, split: expected both ids or neither, and ids with split")
     window = None if split is None else torch.tensor([float(v) for v in split], dtype=weight.dtype,
                                                      device=weight.device)
+    trunc = None if r_max is None else torch.tensor(float(r_max), dtype=weight.dtype, device=weight.device)
     tensors = tuple(t for t in (dst_pos, src_pos, weight, *args, distance_scale) if t is not None)
+    # (the split flag stays last: is_warm reads it there)
     variant = (dst_pos.device.type, dst_pos.dtype, b, c, None if distance_scale is None else distance_scale.shape[-1],
-               src_ids is not None, split is not None)
+               src_ids is not None) + (("truncated",) if trunc is not None else ()) + (split is not None,)
     if m == 0 or n == 0:
         return weight.new_zeros(b, m, c)
     if compiled is None:
         compiled = use_compiled("dipole_pair_sum", variant, float(b) * m * n, tensors)
-    extra = (distance_scale, src_ids, dst_ids, window)
+    extra = (distance_scale, src_ids, dst_ids, window, trunc)
     if not (compiled and _eligible("dipole_pair_sum", tensors)):
         m_step = max(1, min(m, _EAGER_PAIRS // 1024))
         n_step = max(1, _EAGER_PAIRS // m_step)
@@ -423,7 +455,7 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         if src_ids is not None:
             src_ids = torch.cat([src_ids, src_ids[:, :1].expand(b, n_pad)], 1)
     kernel = _compiled("dipole_pair_sum", dipole_pair_sum_eager)
-    out = _blocks(kernel, variant, dst_pos, src_pos, weight, args, (distance_scale, src_ids, dst_ids, window),
+    out = _blocks(kernel, variant, dst_pos, src_pos, weight, args, (distance_scale, src_ids, dst_ids, window, trunc),
                   m_step, n_step)
     return out[:, :m]
 
@@ -447,10 +479,11 @@ def _blocks(kernel: Callable, variant: tuple, dst_pos: Tensor, src_pos: Tensor, 
             args: tuple[Tensor, ...], extra: tuple[Tensor | None, ...], m_step: int, n_step: int) -> Tensor:
     """``kernel`` over blocks of ``m_step`` receivers x ``n_step`` sources, summed over the source blocks.
 
-    ``extra`` is ``(distance_scale, src_ids, dst_ids, split)``: per-source, per-source, per-receiver, whole.
+    ``extra`` is ``(distance_scale, src_ids, dst_ids, split, r_max)``: per-source, per-source, per-receiver, whole,
+    whole.
     """
     m, n = dst_pos.shape[1], src_pos.shape[1]
-    distance_scale, src_ids, dst_ids, split = extra
+    distance_scale, src_ids, dst_ids, split, r_max = extra
     blocks = []
     args = tuple(_fresh(a) for a in args)
     split = None if split is None else _fresh(split)
@@ -465,7 +498,7 @@ def _blocks(kernel: Callable, variant: tuple, dst_pos: Tensor, src_pos: Tensor, 
             ds = None if distance_scale is None else _fresh(distance_scale[:, sl])
             sid = None if src_ids is None else _fresh(src_ids[:, sl])
             part = _call(kernel, variant, dst, _fresh(src_pos[:, sl]), _fresh(weight[:, sl]), *args, ds, sid, did,
-                         split)
+                         split, r_max)
             acc = part if acc is None else acc + part
         blocks.append(acc)
     return torch.cat(blocks, 1)

@@ -16,7 +16,7 @@ optional distance and irradiance modifiers of Shah eq. 7.4. Distances are in mm,
 (:func:`torchsss.physics.r_max` solves Shah eq. 6.16 for it); it is applied to the scaled distance
 :math:`|x_o - x_i| M_d`, so a source's world-space reach is :math:`r_{max} / \\min_c M_{d,i,c}`.
 
-Two implementations compute the same sum:
+Three implementations compute the same sum:
 
 * ``"window"`` (Shah's splat, scatter form): each splat centre is projected with ``view_proj``; a
   :math:`K_y \\times K_x` pixel window around it is tested and its weights are accumulated with
@@ -28,7 +28,13 @@ Two implementations compute the same sum:
   lists, tiles sorted by candidate count and processed in chunks). No projection, no window, no truncation error;
   eager only (the candidate lists have data-dependent sizes).
 
-Both are checked against the all-pairs :func:`torchsss.ops.reference.reference_radiosity` with a truncated
+* ``"gather"`` (plain dipole profiles): every covered pixel against every splat of its image in the fused,
+  compiled pair sum (:func:`torchsss.ops.fused.dipole_pair_sum` with ``r_max``): no candidate lists, all pairs at
+  100-150 Mpairs/s instead of the pairs in reach at about 20. ``"auto"`` picks it (inference, where the pair sum
+  runs compiled) when at least :data:`GATHER_REACH` of the pairs are in reach, as at tight budgets where r_max spans
+  the object.
+
+All are checked against the all-pairs :func:`torchsss.ops.reference.reference_radiosity` with a truncated
 profile; ``benchmarks/bench_splat.py`` measures them.
 """
 
@@ -53,14 +59,14 @@ from torchsss._checks import (
     is_tracing,
     skip_value_checks,
 )
-from torchsss.ops.fused import dipole_params, dipole_taps, use_compiled
+from torchsss.ops.fused import _eligible, dipole_pair_sum, dipole_params, dipole_taps, use_compiled, would_compile
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
 Profile = Callable[[Tensor], Tensor]
 
 __all__ = ["splat_radiosity", "splat_window_size"]
 
-_METHODS = ("auto", "window", "tile")
+_METHODS = ("auto", "window", "tile", "gather")
 #: Pixels of slack added to every projected half extent (absorbs rounding of the projection).
 _MARGIN_PX = 1.0
 #: Upper bound of the (pixel, splat) candidate taps formed per chunk (indices, masks, distances); each call has
@@ -566,6 +572,68 @@ def _splat_tile(out: Tensor, src: dict, mat: tuple, tiles: list[_Tiles], h: int,
     return out + acc.T
 
 
+# -- gather (fused all pairs) -----------------------------------------------------------------------------------------
+#: The share of (pixel, splat) pairs within reach above which the fused gather of all pairs beats the per-pair
+#: paths (the fused pair sum runs 100-150 Mpairs/s on the 2-core machine, the window and tile paths about 20 over
+#: the pairs in reach: 15-32 s a frame for the default scene at 256 x 256 at eps 0.003, where r_max spans it).
+GATHER_REACH = 0.2
+
+
+def _reach_share(src: dict, dst: Tensor, mask_flat: Tensor, probe: int = 256) -> float:
+    """The share of (covered pixel, splat) pairs within the splats' world-space reach.
+
+    Estimated on ``probe`` evenly spaced covered pixels.
+    """
+    covered = torch.nonzero(mask_flat).squeeze(-1)
+    if covered.numel() == 0 or src["pos"].shape[0] == 0:
+        return 0.0
+    pick = covered[torch.linspace(0, covered.numel() - 1, min(probe, covered.numel()),
+                                  device=covered.device).long()]
+    d = torch.cdist(dst[pick].to(src["pos"].dtype), src["pos"])  # (probe, S)
+    return float((d <= src["reach"].reshape(1, -1)).to(torch.float64).mean())
+
+
+def _gather_ok(profile: Profile, src: dict, dst: Tensor, c: int, pairs: float) -> bool:
+    """The gather form pays: a plain dipole, nothing recorded by autograd, and the pairs run compiled.
+
+    ``pairs`` (covered pixels x splats) run compiled when :func:`~torchsss.ops.fused.would_compile` says so (the
+    truncated pair sum is warm, or the frame pays for its compile); eager, the pair sum is slower than the per-pair
+    paths over the pairs in reach.
+    """
+    dipole = dipole_params(profile, dst.dtype, dst.device, c)
+    if dipole is None or not would_compile("dipole_pair_sum", pairs, device=dst.device.type,
+                                           dtype=dipole[1][0].dtype, truncated=True):
+        return False
+    tensors = (src["pos"], src["flux"], dst, *dipole[0]) + (() if src["md"] is None else (src["md"],))
+    return _eligible("dipole_pair_sum", tensors)
+
+
+def _splat_gather(out: Tensor, src: dict, mat: tuple, dst: Tensor, mask_flat: Tensor, dst_obj: Tensor | None,
+                  b: int, hw: int) -> Tensor:
+    """Gather form for the splats of one plain-dipole material; adds to ``out`` :math:`(C, B H W)`.
+
+    Every covered pixel against every splat of its image in the fused pair sum
+    (:func:`~torchsss.ops.fused.dipole_pair_sum` with ``r_max``).
+    """
+    profile, rmax = mat
+    c = out.shape[0]
+    coeffs = dipole_params(profile, dst.dtype, dst.device, c)[1]
+    bounds = torch.searchsorted(src["batch"], torch.arange(b + 1, device=out.device)).tolist()
+    for bi in range(b):
+        lo, hi = bounds[bi], bounds[bi + 1]
+        pix = torch.nonzero(mask_flat[bi * hw:(bi + 1) * hw]).squeeze(-1) + bi * hw
+        if hi == lo or pix.numel() == 0:
+            continue
+        ids = {} if src["obj"] is None else {"src_ids": src["obj"][lo:hi].unsqueeze(0),
+                                             "dst_ids": dst_obj[pix].unsqueeze(0)}
+        work = coeffs[0].dtype  # the profile's dtype promoted with the positions'
+        md = None if src["md"] is None else src["md"][lo:hi].unsqueeze(0).to(work)
+        val = dipole_pair_sum(dst[pix].unsqueeze(0).to(work), src["pos"][lo:hi].unsqueeze(0).to(work),
+                              src["flux"][lo:hi].unsqueeze(0).to(work), *coeffs, md, r_max=float(rmax), **ids)[0]
+        out = out.index_add(1, pix, val.T.to(out.dtype))
+    return out
+
+
 # -- public op -------------------------------------------------------------------------------------------------------
 def splat_radiosity(
     src_pos: Tensor,
@@ -605,10 +673,14 @@ def splat_radiosity(
     pixels (check with :func:`splat_window_size`), and any pixel whose ``dst_pos`` does not project into its own
     pixel. ``method="tile"`` is the gather form: the covered pixels in tiles of ``tile_size`` :math:`^2`, each
     summing over the splats whose reach touches the tile's world-space bounding box; it needs neither
-    ``view_proj`` nor a window and misses nothing, but cannot be exported. ``"auto"`` picks ``"window"`` while
-    tracing/exporting; in eager mode ``"tile"`` when the covered pixels outnumber the splats (with flux) and
-    ``"window"`` otherwise (the faster form in each regime in ``benchmarks/bench_splat.py`` and
-    ``benchmarks/bench_splat_render.py``).
+    ``view_proj`` nor a window and misses nothing, but cannot be exported. ``method="gather"`` (plain dipole
+    profiles only) sums every covered pixel against every splat of its image in the fused pair sum with the
+    truncation (:func:`~torchsss.ops.fused.dipole_pair_sum`, compiled where :func:`~torchsss.ops.fused.use_compiled`
+    allows). ``"auto"`` picks ``"window"`` while tracing/exporting; in eager mode ``"gather"`` for plain dipoles when
+    nothing is recorded by autograd, the pair sum runs compiled (:func:`~torchsss.ops.fused.would_compile`) and at
+    least :data:`GATHER_REACH` of the (pixel, splat) pairs are within reach (estimated on 256 pixels), else
+    ``"tile"`` when the covered pixels outnumber the splats (with flux) and ``"window"`` otherwise (the faster form
+    in each regime in ``benchmarks/bench_splat.py`` and ``benchmarks/bench_splat_render.py``).
 
     In eager mode, splats that cannot reach a pixel (off-screen or behind the camera for the window path; sources
     with zero flux unless ``src_flux``/``src_irradiance_scale`` require gradients) are dropped first, materials are
@@ -643,7 +715,7 @@ def splat_radiosity(
         src_distance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` distance multiplier :math:`M_d > 0` (Shah eq.
             7.4); the truncation applies to the scaled distance, so the reach is :math:`r_{max}/\\min_c M_d`.
         src_irradiance_scale: :math:`(B, S, 1)` or :math:`(B, S, C)` irradiance modulation :math:`M_i \\ge 0`.
-        method: ``"auto"``, ``"window"`` or ``"tile"``.
+        method: ``"auto"``, ``"window"``, ``"tile"`` or ``"gather"``.
         window: odd window side :math:`K` in pixels for ``"window"``, or None to compute it (eager only).
         tile_size: tile side :math:`T` in pixels for ``"tile"``.
         max_memory_mb: soft bound of the temporaries of one chunk, in MiB (> 0).
@@ -802,14 +874,23 @@ def splat_radiosity(
         keep = torch.nonzero((flux != 0).any(-1)).squeeze(-1)
         if keep.numel() < n:
             src, mat = _take(src, keep), mat[keep]
-    if auto:
+    dst_points = dst.permute(0, 2, 3, 1).reshape(b * h * w, 3)
+    if method == "gather" and not all(dipole_params(p, dtype, dst.device, c) is not None for p in profiles):
+        raise ValueError("method: expected a plain dipole profile for 'gather' (the fused pair sum evaluates the "
+                         "analytic dipole), got another profile")
+    pairs = float(mask_flat.sum()) * src["pos"].shape[0] / max(b, 1)  # per image
+    gather = method == "gather" or (auto and all(_gather_ok(p, src, dst_points, c, pairs) for p in profiles)
+                                    and _reach_share(src, dst_points, mask_flat) >= GATHER_REACH)
+    if auto and not gather:
         # measured rule (benchmarks/results/splat*.md): the gather form wins when receivers outnumber the sources
         # (2-3x with 15k pixels and 0.3k-4.7k splats), the scatter form when the sources outnumber the receivers
         # (1.3-7.7x with 2k pixels and 7k-19k splats, render_splat on the default scene)
         method = "tile" if int(mask_flat.sum()) > src["pos"].shape[0] else "window"
     budget = int(max_memory_mb * (1 << 20))
     out = torch.zeros(c, b * h * w, dtype=dtype, device=dst_pos.device)
-    if method == "window":
+    if gather:
+        pass
+    elif method == "window":
         dst_flat = dst.permute(1, 0, 2, 3).reshape(3, b * h * w)
     else:
         grid = dst.permute(0, 2, 3, 1)
@@ -818,7 +899,9 @@ def splat_radiosity(
     for k in torch.unique(mat).tolist() if m > 1 else ([0] if mat.numel() else []):
         sub = src if m == 1 else _take(src, torch.nonzero(mat == k).squeeze(-1))
         row = (profiles[k], rm[k].reshape(1, 1))
-        if method == "window":
+        if gather:
+            out = _splat_gather(out, sub, row, dst_points, mask_flat, dst_obj, b, h * w)
+        elif method == "window":
             out = _splat_window(out, sub, row, dst_flat, mask_flat, dst_obj, vp.to(dtype), h, w, window, budget)
         else:
             out = _splat_tile(out, sub, row, tiles, h, w, budget)
