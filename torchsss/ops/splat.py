@@ -878,7 +878,7 @@ def splat_radiosity(
     if method == "gather" and not all(dipole_params(p, dtype, dst.device, c) is not None for p in profiles):
         raise ValueError("method: expected a plain dipole profile for 'gather' (the fused pair sum evaluates the "
                          "analytic dipole), got another profile")
-    pairs = float(mask_flat.sum()) * src["pos"].shape[0] / max(b, 1)  # per image
+    pairs = float(mask_flat.sum()) * src["pos"].shape[0] / max(b, 1) ** 2  # per image: its pixels x its splats
     gather = method == "gather" or (auto and all(_gather_ok(p, src, dst_points, c, pairs) for p in profiles)
                                     and _reach_share(src, dst_points, mask_flat) >= GATHER_REACH)
     if auto and not gather:
