@@ -207,9 +207,13 @@ def test_compile_config_trusts_the_isa_flags_and_retries(monkeypatch):
         kernel.torchsss_name, kernel.torchsss_eager = "flaky", lambda t: t - 1
         monkeypatch.setattr(fused, "_BROKEN", {})
         monkeypatch.setattr(fused, "_WARM", set())
+        monkeypatch.setattr(fused, "_RAN", set())
         out = fused._call(kernel, ("cpu",), torch.zeros(2))
-    assert seen == [True, None] and "flaky" not in fused._BROKEN  # retried with inductor's own probes
-    torch.testing.assert_close(out, torch.ones(2))
+        assert seen == [True, None] and "flaky" not in fused._BROKEN  # retried with inductor's own probes
+        torch.testing.assert_close(out, torch.ones(2))
+        fused._call(kernel, ("cpu",), torch.zeros(2))  # it has run compiled: the setting is not patched again
+        fused._call(kernel, ("gpu",), torch.zeros(2))  # a new variant compiles: patched
+    assert seen == [True, None, None, True]
 
 
 def test_gradients_take_the_eager_path(monkeypatch):

@@ -82,6 +82,7 @@ _WARM: set[tuple] = set()
 _EAGER_WORK: dict[tuple, float] = {}
 _BROKEN: dict[str, str] = {}
 _EXPECTED: dict[str, float] = {}
+_RAN: set[tuple] = set()  # variants whose compiled form has run (compiled: no ISA setting needed any more)
 
 
 def compile_mode() -> str:
@@ -237,12 +238,15 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
         return kernel(*args)
     if name in _BROKEN:
         return kernel.torchsss_eager(*args)
+    # the ISA setting matters when inductor compiles: on a variant's first call (its shapes are static), not on the
+    # hundreds of block calls of a frame after it (the patch costs about 0.1 ms a call)
+    config = _compile_config() if (name, *variant) not in _RAN else contextlib.nullcontext()
     try:
         try:
-            with _compile_config():
+            with config:
                 out = kernel(*args)
         except Exception:
-            if isinstance(_compile_config(), contextlib.nullcontext):
+            if isinstance(config, contextlib.nullcontext):
                 raise
             _reset_isa()  # perhaps the compiler cannot build a reported ISA: inductor's own probes decide
             out = kernel(*args)
@@ -252,6 +256,7 @@ def _call(kernel: Callable, variant: tuple, *args: Tensor | None) -> Tensor:
                       RuntimeWarning, stacklevel=3)
         return kernel.torchsss_eager(*args)
     _WARM.add((name, *variant))
+    _RAN.add((name, *variant))
     return out
 
 
