@@ -700,6 +700,8 @@ def test_tracing_needs_the_window_path_and_a_fixed_window(monkeypatch):
     monkeypatch.setattr(splat_mod, "is_exporting", lambda: True)
     with pytest.raises(ValueError, match=r"method: expected 'window' while tracing/exporting.*got 'tile'"):
         _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="tile", window=5)
+    with pytest.raises(ValueError, match=r"method: expected 'window' while tracing/exporting.*got 'gather'"):
+        _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0, method="gather", window=5)
     with pytest.raises(ValueError, match=r"window: expected an odd int while tracing/exporting.*got None"):
         _op(src_pos, flux, dst, mask, vp, sa, ss, eta, 3.0)
     # the traced (dense, one chunk) formulation gives the eager numbers

@@ -582,11 +582,12 @@ GATHER_REACH = 0.2
 def _reach_share(src: dict, dst: Tensor, mask_flat: Tensor, probe: int = 256) -> float:
     """The share of (covered pixel, splat) pairs within the splats' world-space reach.
 
-    Estimated on ``probe`` evenly spaced covered pixels.
+    Estimated on ``probe`` evenly spaced covered pixels (fewer, at least 16, when there are over 16k splats).
     """
     covered = torch.nonzero(mask_flat).squeeze(-1)
     if covered.numel() == 0 or src["pos"].shape[0] == 0:
         return 0.0
+    probe = max(16, min(probe, (1 << 22) // src["pos"].shape[0]))  # the (probe, S) distances stay under 32 MB
     pick = covered[torch.linspace(0, covered.numel() - 1, min(probe, covered.numel()),
                                   device=covered.device).long()]
     d = torch.cdist(dst[pick].to(src["pos"].dtype), src["pos"])  # (probe, S)
@@ -805,10 +806,10 @@ def splat_radiosity(
     auto = method == "auto"
     if auto:
         method = "window"  # eager: refined below, once the sources without flux are dropped
-    if tracing and method == "tile":
+    if tracing and method in ("tile", "gather"):
         raise ValueError(
-            "method: expected 'window' while tracing/exporting (the tile path builds candidate lists "
-            "of data-dependent size), got 'tile'"
+            "method: expected 'window' while tracing/exporting (the tile path builds candidate lists of "
+            f"data-dependent size; the gather runs the compiled pair sum in blocks), got {method!r}"
         )
     if tracing and method == "window" and window is None:
         raise ValueError(
