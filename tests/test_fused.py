@@ -397,3 +397,29 @@ def test_would_compile_answers_without_side_effects(monkeypatch):
     assert fused.would_compile("dipole_pair_sum", 1)
     fused._BROKEN["dipole_pair_sum"] = "no compiler"
     assert not fused.would_compile("dipole_pair_sum", 1e12)
+    del fused._BROKEN["dipole_pair_sum"]
+    x = torch.zeros(3, requires_grad=True)
+    assert not fused.would_compile("dipole_pair_sum", 1e12, (x,))  # autograd records through x: eager
+    with torch.no_grad():
+        assert fused.would_compile("dipole_pair_sum", 1e12, (x,))
+    assert not fused.would_compile("dipole_pair_sum", 1e12, (x.detach().to("meta"),))
+
+
+@pytest.mark.parametrize("mode", ["off", "on", "auto"])
+def test_compile_policy_is_the_rule_use_compiled_applies(monkeypatch, mode):
+    """The pure rule against a loop over works and warm states, and use_compiled's decisions against the rule."""
+    monkeypatch.setattr(fused, "_WARM", set())
+    monkeypatch.setattr(fused, "_EAGER_WORK", {})
+    monkeypatch.setattr(fused, "_BROKEN", {})
+    monkeypatch.setenv("TORCHSSS_COMPILE", mode)
+    x = torch.zeros(2)
+    for work in (0, 1, WARM_WORK - 1, WARM_WORK, COLD_WORK - 1, COLD_WORK, 1e15):
+        for warm in (False, True):
+            expected = {"off": False, "on": True}.get(mode, work >= (WARM_WORK if warm else COLD_WORK))
+            assert fused.compile_policy(work, warm=warm) is expected
+            assert fused.compile_policy(work, warm=warm, mode="off") is False
+        key = ("v", str(work))  # a fresh variant: cold, its eager account empty
+        assert fused.use_compiled("k", key, work, (x,)) is fused.compile_policy(work, warm=False)
+        if mode == "auto" and work >= COLD_WORK:  # now warm: the warm rule
+            assert fused.use_compiled("k", key, WARM_WORK - 1, (x,)) is False
+            assert fused.use_compiled("k", key, WARM_WORK, (x,)) is True

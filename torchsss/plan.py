@@ -75,7 +75,7 @@ from torchsss.geometry.lensch import (
 from torchsss.geometry.mesh import Mesh, decimate, surface_deviation
 from torchsss.geometry.sampling import faces_for_spacing
 from torchsss.modules.material import material_module
-from torchsss.ops.fused import COLD_WORK, WARM_WORK, compile_mode, is_warm
+from torchsss.ops.fused import compile_policy, is_warm
 from torchsss.ops.splat import GATHER_REACH
 from torchsss.physics.budget import chang_rp, profile_tail_fraction, splat_alias_error, splat_spacing
 from torchsss.physics.materials import Material
@@ -565,14 +565,9 @@ def _pair_time(pairs: float, eager_t_pair: float, m: dict, warm: bool = False) -
     this process has already compiled (``warm``) costs no compile and serves every frame of
     :data:`~torchsss.ops.fused.WARM_WORK` pairs or more; ``TORCHSSS_COMPILE=off`` never compiles, ``on`` always does.
     """
-    mode = compile_mode()
-    if mode == "off":
+    if not compile_policy(pairs, warm=warm):
         return eager_t_pair * pairs, 0.0
-    if warm:
-        return (m["fused_t_pair"] if pairs >= WARM_WORK else eager_t_pair) * pairs, 0.0
-    if pairs >= COLD_WORK or mode == "on":
-        return m["fused_t_pair"] * pairs, m["fused_compile_s"]
-    return eager_t_pair * pairs, 0.0
+    return m["fused_t_pair"] * pairs, 0.0 if warm else m["fused_compile_s"]
 
 
 def warm_kernels(device: str = "cpu", dtype: torch.dtype = torch.float32) -> frozenset[str]:
@@ -643,11 +638,9 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         splats = 0.5 * grid * grid
         pairs_s, compile_s = m["splat_t"] * splats * footprint * lights, 0.0
         gather = px * splats * lights
-        mode = compile_mode()
-        if footprint >= GATHER_REACH * px and mode != "off" and (
-                mode == "on" or "truncated" in warm or gather >= COLD_WORK):
-            # splat_radiosity's gather form: every (pixel, splat) pair in the fused pair sum, its truncated
-            # variant compiled once per process
+        if footprint >= GATHER_REACH * px and compile_policy(gather, warm="truncated" in warm):
+            # splat_radiosity's rule for its gather form (a reach share of GATHER_REACH, the pairs compiled): every
+            # (pixel, splat) pair in the fused pair sum, its truncated variant compiled once per process
             pairs_s, compile_s = _pair_time(gather, m["ref_t_pair"], m, "truncated" in warm)
         frame = pairs_s + m["splat_t_texel"] * grid * grid * lights + m["splat_f0"]
         return {"error": err, "setup_s": m["splat_s0"] + dec_s + compile_s, "frame_s": frame, "compile_s": compile_s}

@@ -50,11 +50,13 @@ __all__ = [
     "COLD_WORK",
     "WARM_WORK",
     "compile_mode",
+    "compile_policy",
     "derived",
     "dipole_pair_sum",
     "dipole_pair_sum_eager",
     "dipole_taps",
     "dipole_taps_eager",
+    "eligible",
     "expected_work",
     "is_warm",
     "use_compiled",
@@ -95,51 +97,87 @@ def compile_mode() -> str:
     return "auto"
 
 
+def compile_policy(work: float, *, warm: bool, mode: str | None = None) -> bool:
+    """The compile rule as a pure function: whether a call of ``work`` units runs compiled.
+
+    ``mode`` (default :func:`compile_mode`): ``off``: never; ``on``: always; ``auto``: a variant already compiled in
+    this process (``warm``) serves every call of :data:`WARM_WORK` or more, a cold one compiles when ``work`` (the
+    eager work spent on it so far, this call's included, or the announced :func:`expected_work`) reaches
+    :data:`COLD_WORK`. :func:`use_compiled` and :func:`would_compile` apply it to this process's accounts; the
+    planner (:mod:`torchsss.plan`) applies it to the kernels it assumes warm.
+
+    Examples:
+        >>> compile_policy(COLD_WORK, warm=False, mode="auto"), compile_policy(1, warm=True, mode="auto")
+        (True, False)
+    """
+    mode = compile_mode() if mode is None else mode
+    if mode == "off":
+        return False
+    if mode == "on":
+        return True
+    return work >= (WARM_WORK if warm else COLD_WORK)
+
+
+def eligible(name: str, tensors: tuple[Tensor, ...]) -> bool:
+    """Whether kernel ``name`` may run compiled on ``tensors`` at all, whatever the work.
+
+    Not switched off (``TORCHSSS_COMPILE=0``), not broken in this process, nothing traced or exported, a CPU or
+    CUDA device, and nothing recorded by autograd through ``tensors``.
+
+    Examples:
+        >>> eligible("dipole_pair_sum", (torch.zeros(2, requires_grad=True),)) and torch.is_grad_enabled()
+        False
+    """
+    if compile_mode() == "off" or name in _BROKEN or is_tracing():
+        return False
+    if any(t.device.type not in ("cpu", "cuda") for t in tensors):
+        return False
+    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+
+
 def use_compiled(name: str, variant: tuple, work: float, tensors: tuple[Tensor, ...]) -> bool:
     """Whether kernel ``name``'s ``variant`` runs compiled for a call of ``work`` units on ``tensors``.
 
-    In ``auto`` mode a variant not yet compiled in this process stays eager until the eager work spent on it
-    (this call's included) reaches :data:`COLD_WORK`, about one compile's time (the ski-rental rule: at most twice
-    the cost of the better choice in hindsight); a compiled variant serves every call of :data:`WARM_WORK` or more.
-    A call answered False is counted as eager work. Inside :func:`expected_work` the call counts as the whole
-    announced work (a caller that cuts one frame into blocks compiles at its first block when the frame pays for
-    a compile, instead of spending :data:`COLD_WORK` eagerly first).
+    :func:`eligible` and then :func:`compile_policy`: in ``auto`` mode a variant not yet compiled in this process
+    stays eager until the eager work spent on it (this call's included) reaches :data:`COLD_WORK`, about one
+    compile's time (the ski-rental rule: at most twice the cost of the better choice in hindsight); a compiled
+    variant serves every call of :data:`WARM_WORK` or more. A call answered False is counted as eager work. Inside
+    :func:`expected_work` the call counts as the whole announced work (a caller that cuts one frame into blocks
+    compiles at its first block when the frame pays for a compile, instead of spending :data:`COLD_WORK` eagerly
+    first).
     """
-    if not _eligible(name, tensors):
+    if not eligible(name, tensors):
         return False
     if compile_mode() == "on":
-        return True
+        return True  # no accounts kept (the tests' mode)
     key = (name, *variant)
     if key in _WARM:
-        return work >= WARM_WORK
+        return compile_policy(work, warm=True)
     spent = _EAGER_WORK.get(key, 0.0) + float(work)
-    if spent >= COLD_WORK or _EXPECTED.get(name, 0.0) >= COLD_WORK:
+    if compile_policy(max(spent, _EXPECTED.get(name, 0.0)), warm=False):
         _WARM.add(key)  # the caller compiles now: later calls of this variant find it warm
         return True
     _EAGER_WORK[key] = spent
     return False
 
 
-def would_compile(name: str, work: float, **variant: object) -> bool:
-    """Whether a call of kernel ``name`` with ``work`` units would run compiled now (no side effects).
+def would_compile(name: str, work: float, tensors: tuple[Tensor, ...] = (), **variant: object) -> bool:
+    """Whether a call of kernel ``name`` with ``work`` units on ``tensors`` would run compiled now (no side effects).
 
-    As :func:`use_compiled` for an eligible call: ``on``: yes; ``off`` or a broken kernel: no; ``auto``: when a
-    matching variant is warm (``variant``: the filters of :func:`is_warm`, e.g. ``truncated=True``) and the work is
-    at least :data:`WARM_WORK`, or the work (or the announced :func:`expected_work`) reaches :data:`COLD_WORK`.
+    As :func:`use_compiled`: :func:`eligible` on ``tensors`` (none given: only the mode and a broken kernel are
+    checked), then :func:`compile_policy` with the variant warm when a matching one is (``variant``: the filters of
+    :func:`is_warm`, e.g. ``truncated=True``) and, for a cold one, the work or the announced :func:`expected_work`.
     A caller that chooses between a compiled form and another path asks this first.
 
     Examples:
         >>> would_compile("dipole_pair_sum", 0) in (True, False)
         True
     """
-    mode = compile_mode()
-    if mode == "off" or name in _BROKEN:
+    if not eligible(name, tensors):
         return False
-    if mode == "on":
-        return True
     if is_warm(name, **variant):
-        return work >= WARM_WORK
-    return work >= COLD_WORK or _EXPECTED.get(name, 0.0) >= COLD_WORK
+        return compile_policy(work, warm=True)
+    return compile_policy(max(float(work), _EXPECTED.get(name, 0.0)), warm=False)
 
 
 @contextlib.contextmanager
@@ -184,15 +222,6 @@ def is_warm(name: str, *, device: str = "cpu", dtype: torch.dtype = torch.float3
     """
     return any(k[0] == name and k[1] == device and k[2] == dtype and (split is None or k[-1] is split)
                and (truncated is None or ("truncated" in k) is truncated) for k in _WARM)
-
-
-def _eligible(name: str, tensors: tuple[Tensor, ...]) -> bool:
-    """Compilation allowed at all: not switched off, not broken, nothing recorded or traced, a CPU/CUDA device."""
-    if compile_mode() == "off" or name in _BROKEN or is_tracing():
-        return False
-    if any(t.device.type not in ("cpu", "cuda") for t in tensors):
-        return False
-    return not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
 
 
 def _compiled(name: str, eager: Callable) -> Callable:
@@ -335,7 +364,7 @@ def dipole_taps(r: Tensor, flux: Tensor, r_max: Tensor, sigma_a: Tensor, sigma_s
     variant = (r.device.type, r.dtype, c, None if distance_scale is None else distance_scale.shape[0])
     if compiled is None:
         compiled = use_compiled("dipole_taps", variant, float(p), tensors)
-    if not (compiled and _eligible("dipole_taps", tensors)) or p == 0:
+    if not (compiled and eligible("dipole_taps", tensors)) or p == 0:
         return dipole_taps_eager(r, flux, r_max, sigma_a, sigma_s_prime, eta, distance_scale)
     kernel = _compiled("dipole_taps", dipole_taps_eager)
     args = tuple(_fresh(t) for t in (r_max, sigma_a, sigma_s_prime, eta))
@@ -440,7 +469,7 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
     if compiled is None:
         compiled = use_compiled("dipole_pair_sum", variant, float(b) * m * n, tensors)
     extra = (distance_scale, src_ids, dst_ids, window, trunc)
-    if not (compiled and _eligible("dipole_pair_sum", tensors)):
+    if not (compiled and eligible("dipole_pair_sum", tensors)):
         m_step = max(1, min(m, _EAGER_PAIRS // 1024))
         n_step = max(1, _EAGER_PAIRS // m_step)
         return _blocks(dipole_pair_sum_eager, variant, dst_pos, src_pos, weight, args, extra, m_step, n_step)

@@ -59,7 +59,7 @@ from torchsss._checks import (
     is_tracing,
     skip_value_checks,
 )
-from torchsss.ops.fused import _eligible, dipole_pair_sum, dipole_params, dipole_taps, use_compiled, would_compile
+from torchsss.ops.fused import dipole_pair_sum, dipole_params, dipole_taps, use_compiled, would_compile
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
 Profile = Callable[[Tensor], Tensor]
@@ -594,31 +594,29 @@ def _reach_share(src: dict, dst: Tensor, mask_flat: Tensor, probe: int = 256) ->
     return float((d <= src["reach"].reshape(1, -1)).to(torch.float64).mean())
 
 
-def _gather_ok(profile: Profile, src: dict, dst: Tensor, c: int, pairs: float) -> bool:
+def _gather_ok(dipole: tuple | None, src: dict, dst: Tensor, pairs: float) -> bool:
     """The gather form pays: a plain dipole, nothing recorded by autograd, and the pairs run compiled.
 
-    ``pairs`` (covered pixels x splats) run compiled when :func:`~torchsss.ops.fused.would_compile` says so (the
-    truncated pair sum is warm, or the frame pays for its compile); eager, the pair sum is slower than the per-pair
-    paths over the pairs in reach.
+    ``dipole``: the material's :func:`~torchsss.ops.fused.dipole_params` (None: another profile). ``pairs``
+    (covered pixels x splats) run compiled when :func:`~torchsss.ops.fused.would_compile` says so (the truncated
+    pair sum is warm, or the frame pays for its compile); eager, the pair sum is slower than the per-pair paths
+    over the pairs in reach.
     """
-    dipole = dipole_params(profile, dst.dtype, dst.device, c)
-    if dipole is None or not would_compile("dipole_pair_sum", pairs, device=dst.device.type,
-                                           dtype=dipole[1][0].dtype, truncated=True):
+    if dipole is None:
         return False
     tensors = (src["pos"], src["flux"], dst, *dipole[0]) + (() if src["md"] is None else (src["md"],))
-    return _eligible("dipole_pair_sum", tensors)
+    return would_compile("dipole_pair_sum", pairs, tensors, device=dst.device.type, dtype=dipole[1][0].dtype,
+                         truncated=True)
 
 
-def _splat_gather(out: Tensor, src: dict, mat: tuple, dst: Tensor, mask_flat: Tensor, dst_obj: Tensor | None,
-                  b: int, hw: int) -> Tensor:
+def _splat_gather(out: Tensor, src: dict, coeffs: tuple, rmax: Tensor, dst: Tensor, mask_flat: Tensor,
+                  dst_obj: Tensor | None, b: int, hw: int) -> Tensor:
     """Gather form for the splats of one plain-dipole material; adds to ``out`` :math:`(C, B H W)`.
 
     Every covered pixel against every splat of its image in the fused pair sum
-    (:func:`~torchsss.ops.fused.dipole_pair_sum` with ``r_max``).
+    (:func:`~torchsss.ops.fused.dipole_pair_sum` with ``r_max``); ``coeffs``: the material's dipole coefficients
+    (the second item of :func:`~torchsss.ops.fused.dipole_params`).
     """
-    profile, rmax = mat
-    c = out.shape[0]
-    coeffs = dipole_params(profile, dst.dtype, dst.device, c)[1]
     bounds = torch.searchsorted(src["batch"], torch.arange(b + 1, device=out.device)).tolist()
     for bi in range(b):
         lo, hi = bounds[bi], bounds[bi + 1]
@@ -876,11 +874,12 @@ def splat_radiosity(
         if keep.numel() < n:
             src, mat = _take(src, keep), mat[keep]
     dst_points = dst.permute(0, 2, 3, 1).reshape(b * h * w, 3)
-    if method == "gather" and not all(dipole_params(p, dtype, dst.device, c) is not None for p in profiles):
+    dipoles = [dipole_params(p, dtype, dst.device, c) for p in profiles] if method == "gather" or auto else []
+    if method == "gather" and any(d is None for d in dipoles):
         raise ValueError("method: expected a plain dipole profile for 'gather' (the fused pair sum evaluates the "
                          "analytic dipole), got another profile")
     pairs = float(mask_flat.sum()) * src["pos"].shape[0] / max(b, 1) ** 2  # per image: its pixels x its splats
-    gather = method == "gather" or (auto and all(_gather_ok(p, src, dst_points, c, pairs) for p in profiles)
+    gather = method == "gather" or (auto and all(_gather_ok(d, src, dst_points, pairs) for d in dipoles)
                                     and _reach_share(src, dst_points, mask_flat) >= GATHER_REACH)
     if auto and not gather:
         # measured rule (benchmarks/results/splat*.md): the gather form wins when receivers outnumber the sources
@@ -901,7 +900,7 @@ def splat_radiosity(
         sub = src if m == 1 else _take(src, torch.nonzero(mat == k).squeeze(-1))
         row = (profiles[k], rm[k].reshape(1, 1))
         if gather:
-            out = _splat_gather(out, sub, row, dst_points, mask_flat, dst_obj, b, h * w)
+            out = _splat_gather(out, sub, dipoles[k][1], rm[k], dst_points, mask_flat, dst_obj, b, h * w)
         elif method == "window":
             out = _splat_window(out, sub, row, dst_flat, mask_flat, dst_obj, vp.to(dtype), h, w, window, budget)
         else:
