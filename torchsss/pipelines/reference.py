@@ -38,7 +38,7 @@ from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lights import DirectionalLight, Light, surface_irradiance
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
-from torchsss.geometry.sampling import SurfaceSamples, surface_samples
+from torchsss.geometry.sampling import SurfaceSamples, refine_samples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
 from torchsss.geometry.visibility import point_inside, ray_visibility
 from torchsss.modules.material import material_module
@@ -55,6 +55,7 @@ from torchsss.pipelines.specular import specular_radiance
 __all__ = [
     "ReferenceRenderer",
     "RenderResult",
+    "cast_shadow_faces",
     "check_objects",
     "default_spacing",
     "reference_radiosity_at",
@@ -110,6 +111,37 @@ def _visibility(mesh: Mesh, lights: Sequence[Light], points: Tensor, normals: Te
             sm = build_shadow_map(mesh, light, shadow_resolution)
             vis.append(shadow_visibility(sm, points.unsqueeze(0), normals.unsqueeze(0), light))
     return vis
+
+
+def cast_shadow_faces(mesh: Mesh, lights: Sequence[Light], shadows: str = "raytrace") -> Tensor:
+    """The faces a cast shadow's edge crosses: :math:`(F,)` bool.
+
+    Per light, each vertex that faces it (:math:`n \\cdot l > 0`) is lit or in a cast shadow (``shadows``'
+    visibility at the vertex); a face with a lit and a shadowed corner holds a shadow edge, where the irradiance
+    jumps within the face. Unshadowed lights (environments, ``shadows="none"``) cross no face. The attached
+    terminator (:math:`n \\cdot l` through 0) is not an edge: the irradiance goes to zero continuously there.
+
+    Examples:
+        >>> from torchsss.geometry import PointLight, sphere
+        >>> int(cast_shadow_faces(sphere(10.0, 2), [PointLight((0, 0, 50), 1.0)]).sum())  # convex: no cast shadow
+        0
+    """
+    edge = torch.zeros(mesh.num_faces, dtype=torch.bool, device=mesh.faces.device)
+    if shadows == "none" or mesh.num_faces == 0:
+        return edge
+    v, n = mesh.vertices.detach(), mesh.vertex_normals.detach()
+    for light, vis in zip(lights, _visibility(mesh, lights, v, n, shadows)):
+        if vis is None:
+            continue
+        if isinstance(light, DirectionalLight):
+            to_light = -torch.as_tensor(light.direction, dtype=v.dtype, device=v.device).expand_as(v)
+        else:
+            to_light = torch.as_tensor(light.position, dtype=v.dtype, device=v.device) - v
+        facing = (n * to_light).sum(-1) > 0
+        lit = (facing & (vis.reshape(-1) > 0.5))[mesh.faces]
+        cast = (facing & (vis.reshape(-1) <= 0.5))[mesh.faces]
+        edge |= lit.any(1) & cast.any(1)
+    return edge
 
 
 def sample_irradiance(
@@ -217,6 +249,12 @@ class ReferenceRenderer(Renderer):
             silhouettes, creases and sharp shadow terminators (the pixel integral at little more than the cost
             of one sample per pixel: ``spp=16`` is within 0.3% of a fully evaluated 16-spp frame on a back-lit
             torus where 1 spp is 6.9% off; ``tests/test_coarse.py``).
+        shadow_refine: the samples of the faces a cast shadow's edge crosses (:func:`cast_shadow_faces`, per
+            frame) are subdivided this many times finer (1: off). A sample stands for its whole sub-triangle, so a
+            shadow edge is quantised to the spacing; where the near field of :math:`R_d` is narrower than that the
+            image shows it (a side-lit 12 mm wholemilk torus at 256 x 256, ``eps=0.1``: 1.72% relative RMSE with
+            shadows, 0.18% without; refined 4x, 0.29%, with 57 of its 2,304 faces refined and 13% more samples).
+            The vertices' visibility costs one shadow ray per vertex and light a frame.
         refine: with ``stride`` > 1, an interpolated pixel whose four grid corners differ by more than this
             (relative, any channel) is evaluated exactly too (shadow terminators sharper than the grid).
 
@@ -238,7 +276,8 @@ class ReferenceRenderer(Renderer):
 
     method = "reference"
     defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
-                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=None, refine=0.2)
+                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=None, refine=0.2,
+                    shadow_refine=4)
 
     def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
                  irradiance_scale: Tensor | None = None, **kwargs) -> None:
@@ -273,8 +312,16 @@ class ReferenceRenderer(Renderer):
         eta = self.eta
         gbuf = camera_gbuffer(mesh, camera)
         t1 = time.perf_counter()
-        e = sample_irradiance(self.source_mesh, self.samples, lights, eta, shadows=k["shadows"],
-                              fresnel=self.fresnel)
+        samples = self.samples
+        refine = k["shadow_refine"]
+        if isinstance(refine, bool) or not isinstance(refine, int) or refine < 1:
+            raise ValueError(f"shadow_refine: expected an int >= 1, got {refine!r}")
+        if refine > 1:
+            edge = cast_shadow_faces(self.source_mesh, lights, k["shadows"])
+            samples, _ = refine_samples(self.source_mesh, samples, edge, k["spacing_mm"], refine)
+            stats["shadow_edge_faces"] = int(edge.sum())
+            stats["samples"] = int(samples.area.shape[0])
+        e = sample_irradiance(self.source_mesh, samples, lights, eta, shadows=k["shadows"], fresnel=self.fresnel)
         stats["t_irradiance_s"] = time.perf_counter() - t1
         mask = gbuf.mask[0, 0]
         h, w = camera.resolution
@@ -286,13 +333,13 @@ class ReferenceRenderer(Renderer):
         stats["interpolated"] = int(plan.fill.numel())
         stats["pairs"] = stats["receivers"] * stats["samples"]
         t2 = time.perf_counter()
-        fid, bary = self.samples.face_id, self.samples.bary
+        fid, bary = samples.face_id, samples.bary
         mods = {"distance_scale": at_sources(self.md, mesh, fid, bary),
                 "irradiance_scale": at_sources(self.mi, mesh, fid, bary)}
-        b = reference_radiosity_at(receivers, self.samples, e, self.material, max_pairs=k["max_pairs"],
+        b = reference_radiosity_at(receivers, samples, e, self.material, max_pairs=k["max_pairs"],
                                    progress=self.progress, **mods)
         exact = plan.refine(b, k["refine"])  # interpolated pixels whose corners disagree: evaluated exactly
-        b_exact = reference_radiosity_at(pos_img.reshape(-1, 3)[plan.fill[exact]], self.samples, e, self.material,
+        b_exact = reference_radiosity_at(pos_img.reshape(-1, 3)[plan.fill[exact]], samples, e, self.material,
                                          max_pairs=k["max_pairs"], **mods) if exact.numel() else None
         stats["interpolated"] -= int(exact.numel())
         stats["receivers"] += int(exact.numel())
