@@ -67,6 +67,7 @@ for name in ("build_atlas", "local_kernel_geometry", "build_throughput", "build_
 wrap(PL, "irradiance_atlas", "frame: irradiance atlas")
 wrap(ML.GlobalResponse, "throughput_values", "frame: throughput values")
 wrap(ML.LocalResponse, "planes", "frame: local kernel planes")
+wrap(ML.LocalResponse, "half_planes", "frame: local kernel planes")
 time.sleep(0.05)
 baseline = rss()
 scene = load_scene(default_scene_path())

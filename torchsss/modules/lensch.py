@@ -17,12 +17,13 @@ translucency mask removes non-translucent texels as sources and receivers.
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor
+from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor, compute_dtype, is_tracing
 from torchsss.geometry.lensch import (
     DenseThroughput,
     HatQuadrature,
@@ -34,7 +35,7 @@ from torchsss.geometry.lensch import (
     _distance,
 )
 from torchsss.modules.cache import ValueCache, material_key
-from torchsss.ops.sparse import sparse_apply_t, sparse_pattern
+from torchsss.ops.sparse import SparsePattern, sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d_planes
 from torchsss.physics.fresnel import check_fresnel, transmittance
 
@@ -149,7 +150,10 @@ class LocalResponse(nn.Module):
     receivers with a source or a correction) and evaluated into the one full tap-major copy that
     :func:`~torchsss.ops.sv_conv2d_planes` reads, cached while the material is unchanged. At atlas 512 and
     k = 11 on the default scene that is 634 MB where full buffers, full kernels and the convolution's permuted
-    copy of them took 1.33 GB.
+    copy of them took 1.33 GB. A module :meth:`from_atlas` without a correction, distance multiplier or mask
+    relights with half of that instead (:meth:`half_planes`: the kernels are the source area times a profile of a
+    symmetric distance, so one plane serves a tap and its mirror): at atlas 1024 and k = 7, 0.32 GB instead of
+    0.62 GB, the frame's local response about 1.4x slower (eager), the same values up to float rounding.
 
     Args:
         geometry: :class:`~torchsss.geometry.lensch.LocalKernelGeometry` (distances and source areas), full or
@@ -171,6 +175,8 @@ class LocalResponse(nn.Module):
 
     #: Bytes of profile temporaries per block of receivers in the eager evaluation of :meth:`planes`.
     block_bytes = 8 << 20
+    #: Bytes of outputs per band of rows in the frames' accumulation over the symmetric planes (:meth:`forward`).
+    band_bytes = 512 << 10
 
     def __init__(self, geometry: LocalKernelGeometry, material: nn.Module, *, correction: Tensor | None = None,
                  distance_scale: Tensor | None = None, irradiance_scale: Tensor | None = None,
@@ -350,8 +356,7 @@ class LocalResponse(nn.Module):
         """
         k2 = self.kernel_size ** 2
         n = self.index.shape[0]
-        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
-                torch.onnx.is_in_onnx_export():
+        if torch.is_grad_enabled() or is_tracing():
             comp = self._kernel_rows(0, n)
             c = comp.shape[0]
             cols = torch.cat([comp.reshape(c, n, k2), comp.new_zeros(c, 1, k2)], 1).transpose(1, 2)  # (C, k2, N+1)
@@ -401,9 +406,97 @@ class LocalResponse(nn.Module):
         check_finite(irradiance, "irradiance")
         e = irradiance if self.irradiance_scale is None else irradiance * self.irradiance_scale
         key = material_key(self.material)
+        if key is not None and self._symmetric():
+            half, centre = self._cache.get((*key, self.index.device, "half"), self.half_planes)
+            return self._apply_half(e, half, centre)
         planes = self._cache.get(None if key is None else (*key, self.index.device), self.planes)
         out = sv_conv2d_planes(e.transpose(0, 1), planes)  # channels as the kernel batch, the batch as channels
         return out.transpose(0, 1)
+
+    def _symmetric(self) -> bool:
+        """Whether the kernels factor as :math:`A_s P(o, s)` with a symmetric :math:`P` (taps derived from the atlas).
+
+        True for :meth:`from_atlas` modules without a correction, a distance multiplier or a mask: there
+        :math:`K_o(s) = A_s R_d(|x_o - x_s|)` and the distance is the same bits either way round.
+        """
+        return self.src_position is not None and self.correction is None and self.src_scale is None and \
+            self.rec_mask is None
+
+    def half_planes(self) -> tuple[Tensor, Tensor]:
+        """The symmetric factor of the kernels on half the taps, and the centre taps (:meth:`forward`'s cache).
+
+        :math:`P_t(o) = R_d(|x_o - x_{o + \\delta_t}|)` for the :math:`(k^2 - 1)/2` taps ``t`` before the centre
+        (row-major), 0 unless both texels are valid, :math:`(C, (k^2 - 1)/2, H, W)`; the tap opposite ``t`` of
+        receiver ``o`` is :math:`P_t(o - \\delta_t)`, so these planes hold every off-centre kernel
+        :math:`K_o(s) = A_s P(o, s)` (less than half of :meth:`planes`: 0.32 GB instead of 0.62 GB at atlas 1024
+        and k = 7). The centre taps (the self term) :math:`(C, H, W)`. Only for :meth:`_symmetric` modules,
+        evaluated in blocks of receivers outside autograd.
+        """
+        k = self.kernel_size
+        r = k // 2
+        nh = (k * k - 1) // 2
+        n = self.index.shape[0]
+        hw = self.height * self.width
+        wp = self.width + 2 * r
+        valid = F.pad((self.slot < n).reshape(self.height, self.width), (r, r, r, r)).reshape(-1)
+        ar = torch.arange(k, device=self.index.device)
+        offsets = (ar[:, None] * wp + ar[None, :]).reshape(-1)[:nh]
+        zero = torch.zeros(1, 1, dtype=self.self_area.dtype, device=self.index.device)
+        probe = self.material(zero)
+        channels, dtype = int(probe.shape[-1]), torch.promote_types(probe.dtype, self.self_area.dtype)
+        half = torch.zeros(channels, nh, hw, dtype=dtype, device=self.index.device)
+        centre = torch.zeros(channels, hw, dtype=dtype, device=self.index.device)
+        block = max(1, self.block_bytes // (max(nh, 1) * 4 * self.self_area.element_size()))
+        for lo in range(0, n, block):
+            hi = min(n, lo + block)
+            idx = self.base[lo:hi, None] + offsets  # (m, nh) in the padded maps
+            d = _distance(self.rec_position[lo:hi, None, :], self.src_position[:, idx].permute(1, 2, 0))
+            rd = self.material(d.unsqueeze(-1))  # (m, nh, C)
+            rd = torch.where(valid[idx].unsqueeze(-1), rd, torch.zeros_like(rd))
+            at = self.index[lo:hi]
+            half[:, :, at] = rd.permute(2, 1, 0).to(dtype)
+            # the centre tap as _kernel_rows makes it: A_o R_d(0), replaced by the disk integral
+            area = self.self_area[lo:hi]
+            kc = area.unsqueeze(-1) * self.material(torch.zeros_like(area).unsqueeze(-1))
+            disk = _disk_integral(self.material, area) if self.self_term == "disk" else None
+            if disk is not None:
+                kc = kc + (disk - kc)
+            centre[:, at] = kc.T.to(dtype)
+        return half.view(channels, nh, self.height, self.width), centre.view(channels, self.height, self.width)
+
+    def _apply_half(self, e: Tensor, half: Tensor, centre: Tensor) -> Tensor:
+        """:math:`(B, C, H, W)` -> :math:`(B, C, H, W)` with :meth:`half_planes`: every tap pair from one plane.
+
+        :math:`B^l(o) = K_o(o) E(o) + \\sum_t P_t(o) (AE)(o + \\delta_t) + P_t(o - \\delta_t) (AE)(o - \\delta_t)`,
+        :math:`AE` the irradiance times the source area; in-place multiply-accumulates over shifted slices.
+        """
+        check_tensor(e, "irradiance")
+        out_dtype, dtype = compute_dtype(e, half)
+        k = self.kernel_size
+        r = k // 2
+        h, w = self.height, self.width
+        x = e.transpose(0, 1).to(dtype)  # (C, B, H, W): channel c of the irradiance meets channel c's kernels
+        half, centre = half.to(dtype), centre.to(dtype)
+        wp = w + 2 * r
+        area = self.src_area.view(h + 2 * r, wp)[r:r + h, r:r + w].to(dtype)
+        ae = x * area
+        aep = F.pad(ae, (r, r, r, r))
+        out = centre.unsqueeze(1) * x
+        # bands of rows whose outputs stay in the cache over the k^2 - 1 passes (1.4x faster than whole planes)
+        band = max(1, self.band_bytes // max(1, out[:, :, :1].numel() * out.element_size()))
+        for y0 in range(0, h, band):
+            y1 = min(h, y0 + band)
+            for t in range(half.shape[1]):
+                i, j = divmod(t, k)
+                p = half[:, t].unsqueeze(1)
+                out[:, :, y0:y1].addcmul_(p[:, :, y0:y1], aep[:, :, y0 + i:y1 + i, j:j + w])  # source o + delta_t
+                dy, dx = r - i, r - j  # the source at o - delta_t = o + (dy, dx), dy >= 0
+                x0, x1 = max(0, -dx), w - max(0, dx)
+                z1 = min(y1, h - dy)
+                if z1 > y0:
+                    out[:, :, y0:z1, x0:x1].addcmul_(p[:, :, y0 + dy:z1 + dy, x0 + dx:x1 + dx],
+                                                     ae[:, :, y0 + dy:z1 + dy, x0 + dx:x1 + dx])
+        return out.transpose(0, 1).to(out_dtype)
 
 
 class GlobalResponse(nn.Module):
@@ -499,36 +592,87 @@ class GlobalResponse(nn.Module):
                                  f"{hat.centroid_distance.shape[0]}")
             scale = None if vertex_md is None else vertex_md.to(dist.dtype)
             # the moment rule's four distances, each times the source's M_d
+            # (written into one (3, nnz) buffer: a list and a stack held them twice)
             r = hat.centroid_distance.to(dist.dtype)
             sr = hat.radial_var.to(dist.dtype).sqrt()
-            moments = [r, r + sr, (r - sr).abs(), (r * r + hat.transverse_var.to(dist.dtype)).sqrt()]
+            moments = torch.empty(3, nnz, dtype=dist.dtype, device=dist.device)
+            torch.add(r, sr, out=moments[0])
+            torch.sub(r, sr, out=moments[1]).abs_()
+            torch.sqrt(r * r + hat.transverse_var.to(dist.dtype), out=moments[2])
+            del sr
             if scale is not None:
-                moments = [m * scale[throughput.rows] for m in moments]
-            dist = moments[0]
+                s_rows = scale[throughput.rows]
+                moments.mul_(s_rows)
+                r = r * s_rows
+                del s_rows
+            dist = r
             hd = hat.distance.to(dist.dtype)
             if scale is not None:  # the source's M_d, as for the sampled entries
                 hd = hd * scale[throughput.rows[hat.entries][hat.term_entry]]
         self.register_buffer("distance", dist)
-        self.register_buffer("hat_moments", None if moments is None else torch.stack(moments[1:]), persistent=False)
+        self.register_buffer("hat_moments", moments, persistent=False)
         self.register_buffer("hat_entries", None if hat is None else hat.entries.clone(), persistent=False)
-        # int64: the exported graph's ScatterND takes no int32 indices (a cast before it did not survive export)
-        self.register_buffer("hat_term_entry", None if hat is None else hat.term_entry.to(torch.int64),
+        # int32 (index_add takes it; 43 MB less on the default scene's 10.7M terms at atlas 1024), int64 in graphs
+        self.register_buffer("hat_term_entry", None if hat is None else hat.term_entry.to(torch.int32),
                              persistent=False)
         self.register_buffer("hat_distance", None if hat is None else hd, persistent=False)
-        self.register_buffer("hat_weight", None if hat is None else hat.weight.to(dist.dtype).clone(),
+        hw = None if hat is None else hat.weight.to(dist.dtype)
+        self.register_buffer("hat_weight", hw.clone() if copy and hw is not None and hw is hat.weight else hw,
                              persistent=False)
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
         # not per nonzero: on 6M nonzeros the closed-form cumulative for all of them took 8 s of a first frame)
         self.register_buffer("diagonal_index", (throughput.rows == throughput.cols).nonzero()[:, 0],
                              persistent=False)
-        pattern = sparse_pattern(throughput.rows, throughput.cols, self.num_vertices, self.num_vertices)
-        self.pattern = pattern
-        for name in ("rows", "cols", "t_crow", "t_col", "t_perm"):
-            self.register_buffer(f"_p_{name}", getattr(pattern, name), persistent=False)
+        # the pattern in int32 (the entries' rows and columns, the CSR row pointers of F^T and the permutation that
+        # sorts the entries by column): 97 MB for the default scene's 6.4M entries where the int64 SparsePattern,
+        # with F^T's column indices, held 194 MB; F^T's CSR matrix (the frames' product) is built from them once
+        # per material (:meth:`vertex_radiosity`), the int64 pattern only for the differentiable and exported paths
+        rows, cols = throughput.rows, throughput.cols
+        if n >= 2**31 or rows.numel() >= 2**31:
+            raise ValueError(f"throughput: expected fewer than 2^31 vertices and entries, got {n} and {rows.numel()}")
+        sparse_pattern(rows[:0], cols[:0], n, n)  # the index checks of the pattern (types, shapes, devices)
+        if rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= n or int(cols.min()) < 0
+                             or int(cols.max()) >= n):
+            raise ValueError(f"throughput: expected rows and cols in [0, {n}), got rows in [{int(rows.min())}, "
+                             f"{int(rows.max())}] and cols in [{int(cols.min())}, {int(cols.max())}]")
+        counts = torch.bincount(cols, minlength=n) if cols.numel() else cols.new_zeros(n)
+        cols32 = cols.to(torch.int32)
+        self.register_buffer("_p_t_perm", torch.argsort(cols32, stable=True).to(torch.int32), persistent=False)
+        self.register_buffer("_p_rows", rows.to(torch.int32), persistent=False)
+        self.register_buffer("_p_cols", cols32, persistent=False)
+        self.register_buffer("_p_t_crow", torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)]).to(torch.int32),
+                             persistent=False)
+        self.pattern = None
+        self._csr_cache = ValueCache()
 
-    def _pattern(self):
-        return self.pattern._replace(rows=self._p_rows, cols=self._p_cols, t_crow=self._p_t_crow,
-                                     t_col=self._p_t_col, t_perm=self._p_t_perm)
+    def _pattern(self) -> SparsePattern:
+        """The throughput's :class:`~torchsss.ops.sparse.SparsePattern` (int64, made from the int32 buffers)."""
+        rows, perm = self._p_rows.long(), self._p_t_perm.long()
+        n = self.num_vertices
+        return SparsePattern(rows, self._p_cols.long(), n, n, self._p_t_crow.long(), rows.index_select(0, perm), perm)
+
+    def _csr(self, x_dtype: torch.dtype) -> tuple[list[Tensor], torch.dtype, torch.dtype]:
+        """The CSR matrices of :math:`F^T`, one per channel, from the current values; the output and compute dtypes.
+
+        As :func:`~torchsss.ops.sparse.sparse_apply_t`'s cached CSR product for a vertex irradiance of ``x_dtype``:
+        the values in the compute dtype permuted into column order, int32 indices (F^T's column indices, the
+        entries' rows in that order, made here); the values themselves are not kept.
+        """
+        values = self.throughput_values()
+        out_dtype, dtype = compute_dtype(torch.empty(0, dtype=x_dtype), values)
+        vals = values.to(dtype).index_select(0, self._p_t_perm)
+        del values
+        col = self._p_rows.index_select(0, self._p_t_perm)
+        n = self.num_vertices
+
+        def csr(v: Tensor) -> Tensor:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta", category=UserWarning)
+                return torch.sparse_csr_tensor(self._p_t_crow, col, v, size=(n, n), check_invariants=False)
+
+        if vals.dim() == 1:
+            return [csr(vals)], out_dtype, dtype
+        return [csr(vals[:, ch].contiguous()) for ch in range(vals.shape[1])], out_dtype, dtype
 
     def vertex_irradiance(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` -> :math:`(B, N, C)` vertex irradiance :math:`E^g` (Lensch eq. 10), scatter_add."""
@@ -550,7 +694,10 @@ class GlobalResponse(nn.Module):
             return self._dense_values()
         if self.hat_entries is not None:
             vals = self._blocks(self._moment_rule, self.distance.shape[0])
-            return vals.index_copy(0, self.hat_entries, self.hat_values(vals.shape[-1], vals.dtype))
+            near = self.hat_values(vals.shape[-1], vals.dtype)
+            if vals.requires_grad or near.requires_grad or is_tracing():
+                return vals.index_copy(0, self.hat_entries, near)
+            return vals.index_copy_(0, self.hat_entries, near)  # in place: no second copy of every value
         vals = self._blocks(self._sampled, self.distance.shape[0])
         disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
         if disk is None:
@@ -569,8 +716,7 @@ class GlobalResponse(nn.Module):
             return torch.where(self.keep[lo:hi].unsqueeze(-1), f, torch.zeros_like(f)).permute(2, 0, 1)
 
         step = max(1, self.value_block // max(n, 1))
-        if n <= step or torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
-                torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+        if n <= step or torch.is_grad_enabled() or is_tracing():
             vals = rows(0, n)
         else:  # written into one output (a list and a cat would hold both at once)
             first = rows(0, step)
@@ -602,14 +748,14 @@ class GlobalResponse(nn.Module):
 
     @staticmethod
     def _blocks(fn, n: int) -> Tensor:
-        """``fn(lo, hi)`` over ``0:n``: one call under autograd, tracing or export, blocks of 1M rows otherwise.
+        """``fn(lo, hi)`` over ``0:n``: one call under autograd, tracing or export, blocks of 256k rows otherwise.
 
-        (The profile's temporaries of every entry at once reached 1-2 GB on a 7M-entry throughput.)
+        (The profile's temporaries of every entry at once reached 1-2 GB on a 7M-entry throughput; blocks of 1M
+        rows of the moment rule, four profile evaluations a row, still took 0.3 GB.)
         """
-        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
-                torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+        if torch.is_grad_enabled() or is_tracing():
             return fn(0, n)
-        block = 1 << 20
+        block = 1 << 18
         out = None
         for lo in range(0, n, block):  # written into one output (a list and a cat would hold both at once)
             part = fn(lo, min(n, lo + block))
@@ -623,18 +769,17 @@ class GlobalResponse(nn.Module):
     def hat_values(self, channels: int, dtype: torch.dtype) -> Tensor:
         """:math:`(E, C)` the near entries of the hat quadrature, :math:`\\sum_t w_t R_d(d_t)`.
 
-        Outside autograd and tracing the terms are evaluated in blocks (about 1M terms, ~50 MB of profile
+        Outside autograd and tracing the terms are evaluated in blocks (256k terms, ~15 MB of profile
         temporaries, at a time); under autograd or export in one expression.
         """
         n = self.hat_entries.shape[0]
         total = self.hat_distance.shape[0]
-        if torch.is_grad_enabled() or torch.jit.is_tracing() or torch.compiler.is_compiling() or \
-                torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting():
+        if torch.is_grad_enabled() or is_tracing():
             terms = self.hat_weight.unsqueeze(-1) * self.material(self.hat_distance.unsqueeze(-1))
             out = torch.zeros(n, terms.shape[-1], dtype=terms.dtype, device=terms.device)
-            return out.index_add(0, self.hat_term_entry, terms)
+            return out.index_add(0, self.hat_term_entry.long(), terms)  # the exported ScatterND takes int64
         out = torch.zeros(n, channels, dtype=dtype, device=self.hat_distance.device)
-        block = 1 << 20
+        block = 1 << 18
         for lo in range(0, total, block):
             hi = min(total, lo + block)
             terms = self.hat_weight[lo:hi].unsqueeze(-1) * self.material(self.hat_distance[lo:hi].unsqueeze(-1))
@@ -648,6 +793,15 @@ class GlobalResponse(nn.Module):
         """
         eg = self.vertex_irradiance(irradiance) if vertex_irradiance is None else vertex_irradiance
         key = material_key(self.material)
+        if key is not None and not self.dense and self.method in ("auto", "csr") and eg.device.type != "meta":
+            # relighting a fixed material: only F^T's CSR matrices are kept (sparse_apply_t's csr path, its values)
+            check_tensor(eg, "vertex_irradiance")
+            mats, out_dtype, dtype = self._csr_cache.get((*key, self.distance.device, eg.dtype),
+                                                         lambda: self._csr(eg.dtype))
+            if eg.dim() == 3 and eg.shape[1] == self.num_vertices and eg.shape[2] == len(mats):
+                x = eg.to(dtype)
+                y = torch.stack([mats[ch] @ x[:, :, ch].t() for ch in range(x.shape[-1])], dim=-1)
+                return y.permute(1, 0, 2).to(out_dtype)
         values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
         if self.dense:  # B_j = sum_i E_i F_ij per channel: (C, B, N) @ (C, N, N)
             dtype = torch.promote_types(eg.dtype, values.dtype)
