@@ -35,7 +35,7 @@ from tqdm import tqdm
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
-from torchsss.geometry.lights import DirectionalLight, Light, surface_irradiance
+from torchsss.geometry.lights import DirectionalLight, Light, incident_light, surface_irradiance
 from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.sampling import SurfaceSamples, refine_samples, surface_samples
@@ -144,6 +144,19 @@ def cast_shadow_faces(mesh: Mesh, lights: Sequence[Light], shadows: str = "raytr
     return edge
 
 
+def _front_faces(mesh: Mesh, lights: Sequence[Light], samples: SurfaceSamples) -> list[Tensor | None]:
+    """Per light, the :math:`(1, N)` visibility "the sample's face turns towards the light" (None: environments)."""
+    normal = mesh.face_normals.detach().to(samples.position.dtype)[samples.face_id]
+    out: list[Tensor | None] = []
+    for light in lights:
+        if isinstance(light, EnvironmentLight):
+            out.append(None)
+            continue
+        to_light = incident_light(light, samples.position.detach().unsqueeze(0))[0][0]
+        out.append(((normal * to_light).sum(-1) > 0).to(samples.position.dtype).unsqueeze(0))
+    return out
+
+
 def sample_irradiance(
     mesh: Mesh,
     samples: SurfaceSamples,
@@ -157,12 +170,19 @@ def sample_irradiance(
     """Transmitted irradiance :math:`(N, 3)` at the samples, with the chosen visibility.
 
     ``shadows``: ``"raytrace"`` (exact, the reference), ``"shadowmap"`` (hard shadows from
-    :func:`~torchsss.geometry.shadow.build_shadow_map`) or ``"none"``. Environment lights
+    :func:`~torchsss.geometry.shadow.build_shadow_map`) or ``"none"``: no occlusion by other parts of the mesh,
+    but no light through a face's back either (a sample whose face turns away from the light gets none, whatever
+    its interpolated normal says: exact on a convex object, where vertex normals smoothed across a sharp edge
+    would otherwise let light onto the faces turned away; a side-lit 25 mm cream slab was 5.8% off the
+    ray-traced image at ``eps=0.1``). Environment lights
     (:class:`~torchsss.geometry.environment.EnvironmentLight`) are unshadowed: their order-2 SH irradiance with
     the Fresnel-cosine lobe is exact for the band-limited environment, and its occlusion is ignored (as in Shah).
     ``eta`` is a number or the material module's ``eta`` tensor.
     """
-    vis = _visibility(mesh, lights, samples.position, samples.normal, shadows, shadow_resolution)
+    if shadows == "none":
+        vis = _front_faces(mesh, lights, samples)
+    else:
+        vis = _visibility(mesh, lights, samples.position, samples.normal, shadows, shadow_resolution)
     e = surface_irradiance(samples.position.unsqueeze(0), samples.normal.unsqueeze(0), list(lights), eta,
                            visibility=vis, fresnel=fresnel)
     return e.squeeze(0)
