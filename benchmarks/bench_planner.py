@@ -81,10 +81,25 @@ VERIFICATION = {
     "bunny 60 mm skimmilk side": ("bunny", 60, "skimmilk", "side", 128, 30000),
     "igea 25 mm apple back": ("igea", 25, "apple", "back", 128, 40000),
 }
+#: A second set of new scenes (``--set fresh``, first run 2026-11-27 after the reference's shadow-edge refinement;
+#: no planner constant was refitted since :data:`VERIFICATION` was first run).
+FRESH = {
+    "sphere 12 mm marble side": ("sphere", 12, "marble", "side", 256),
+    "torus 25 mm apple back": ("torus", 25, "apple", "back", 128),
+    "spot 50 mm skimmilk front": ("spot", 50, "skimmilk", "front", 128),
+    "teapot 30 mm chicken1 side": ("teapot", 30, "chicken1", "side", 128),
+    "bunny 20 mm ketchup back": ("bunny", 20, "ketchup", "back", 128, 30000),
+    "slab 25 mm cream side": ("slab", 25, "cream", "side", 128),
+    "igea 40 mm skin2 front": ("igea", 40, "skin2", "front", 128, 40000),
+    "sphere 60 mm wholemilk back": ("sphere", 60, "wholemilk", "back", 128),
+    "torus 8 mm potato side": ("torus", 8, "potato", "side", 256),
+}
 
 
-def scenes(quick: bool) -> list[Scene]:
-    """The verification scenes (:data:`VERIFICATION`; the shared ones where ``../shared`` is here).
+def scenes(quick: bool, which: str = "main") -> list[Scene]:
+    """The verification scenes: :data:`VERIFICATION`, or :data:`FRESH` (``which="fresh"``), where they load.
+
+    The shared meshes' scenes only where ``../shared`` is here.
 
     None of them is a calibration scene (``bench_trade.calibration_scenes`` and those of
     ``results/planner_v1_rows.json`` and ``results/planner_v2_rows.json``).
@@ -93,7 +108,7 @@ def scenes(quick: bool) -> list[Scene]:
         return [make_scene("sphere 10 mm apple front", "sphere", 10, "apple", "front", 48),
                 make_scene("torus 30 mm ketchup side", "torus", 30, "ketchup", "side", 48)]
     out = []
-    for name, spec in VERIFICATION.items():
+    for name, spec in (FRESH if which == "fresh" else VERIFICATION).items():
         try:
             out.append(make_scene(name, *spec))
         except ValueError:  # a shared mesh that is not here
@@ -116,13 +131,15 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", default=None, help="run the scenes whose names contain one of these")
     parser.add_argument("--merge", type=Path, default=None,
                         help="a JSON list of verification records of an earlier run to merge with this run's")
+    parser.add_argument("--set", choices=("main", "fresh"), default="main",
+                        help="the scene set: VERIFICATION (main) or FRESH (a second set of new scenes)")
     parser.add_argument("--no-sweep", action="store_true",
                         help="skip the trade sweep: hit rate only (time ratio against the truth and the plans)")
     args = parser.parse_args()
     setup_benchmark(parser, args)
     start = time.perf_counter()
     records, rows_all = [], {}
-    chosen = [s for s in scenes(args.quick) if not args.only or any(o in s.name for o in args.only)]
+    chosen = [s for s in scenes(args.quick, args.set) if not args.only or any(o in s.name for o in args.only)]
     if args.merge is not None:
         records += [r for r in json.loads(args.merge.read_text()) if r["scene"] not in {s.name for s in chosen}]
     for scene in chosen:
@@ -170,8 +187,8 @@ def main() -> None:
                   f"ratio {records[-1]['time_ratio']:.2f} vs {records[-1]['fastest_meeting']}", flush=True)
         rows_all[scene.name] = rows
         print(f"{scene.name}: {time.perf_counter() - t_scene:.0f} s", flush=True)
-    records.sort(key=lambda r: ([s.name for s in scenes(args.quick)].index(r["scene"])
-                                if r["scene"] in [s.name for s in scenes(args.quick)] else 99, r["tolerance"]))
+    order = [s.name for s in scenes(args.quick, args.set)]
+    records.sort(key=lambda r: (order.index(r["scene"]) if r["scene"] in order else 99, r["tolerance"]))
     hits = sum(r["hit"] for r in records)
     ratio_ok = sum(r["time_ratio"] <= 1.5 for r in records)
     summary = [{"benchmark": "summary", "pairs": len(records), "hits": hits, "hit_rate": hits / max(1, len(records)),

@@ -731,18 +731,22 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
         if method == "reference":
             for eps, n, wanted, n_dec in zip(REFERENCE_EPS, facts.sources, facts.source_faces,
                                              facts.sources_decimated):
-                knobs: dict = {"eps": eps}
-                r = dict(rules)
                 h = reference_spacing(prof, facts.size_mm, eps)
-                if wanted * 2 <= facts.faces and n_dec * 1.5 <= n:
-                    knobs["source_faces"] = wanted
-                    n = n_dec
-                    r["sources"] = (f"sources from {wanted} faces, not {facts.faces}: the spacing {h:.3g} mm needs "
-                                    f"about {n} samples")
-                if facts.convex and facts.lights > 0:
-                    knobs["shadows"] = "none"
-                    r["shadows"] = "convex object: a sample faces the light exactly when the light sees it"
-                out.append({"method": method, "knobs": knobs, "decimate": None, "rules": r, "_sources": n})
+                # the full mesh's sources always, and those of the mesh decimated to the spacing where that saves
+                # samples (its surface deviation adds error: on a small, finely tessellated object only the full
+                # sources may meet a tight tolerance)
+                variants = [(None, n)] + ([(wanted, n_dec)] if wanted * 2 <= facts.faces and n_dec * 1.5 <= n else [])
+                for faces, count in variants:
+                    knobs: dict = {"eps": eps}
+                    r = dict(rules)
+                    if faces is not None:
+                        knobs["source_faces"] = faces
+                        r["sources"] = (f"sources from {faces} faces, not {facts.faces}: the spacing {h:.3g} mm "
+                                        f"needs about {count} samples")
+                    if facts.convex and facts.lights > 0:
+                        knobs["shadows"] = "none"
+                        r["shadows"] = "convex object: a sample faces the light exactly when the light sees it"
+                    out.append({"method": method, "knobs": knobs, "decimate": None, "rules": r, "_sources": count})
         elif method == "splat":
             # eps 0.1 is left out: the truncation drops 10% of every splat's energy, and where that shows (thin
             # parts of long-scattering materials, front-lit) is beyond the model: in the verification run all 9 of
