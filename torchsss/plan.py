@@ -220,6 +220,8 @@ class SceneFacts:
             would not be decimated).
         local_bound_mm: the hybrid's local bound :math:`r_b` at its default split (:func:`hybrid_local_bound`; 0
             when the split is off because :math:`r_b` exceeds 0.8 times the object's radius).
+        atlas_deviation_mm: how far the mesh decimated to :func:`detail_faces` (the atlas methods' mesh) strays
+            from the surface (90th percentile, as ``source_deviation_mm``; 0 where it is not decimated).
         throughput_entries: Lensch's vertex throughput entries on the full mesh at its default threshold
             (:func:`~torchsss.geometry.lensch.estimate_throughput_entries`; -1 when not estimated: ``from_scene``
             with ``throughput=False``, for plans that cannot pick Lensch); they scale with the square of the
@@ -247,6 +249,7 @@ class SceneFacts:
     throughput_entries: int
     source_deviation_mm: tuple[float, ...] = ()
     local_bound_mm: float = 0.0
+    atlas_deviation_mm: float = 0.0
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True) -> SceneFacts:
@@ -307,7 +310,7 @@ class SceneFacts:
         decimated = tuple(min(n, int(1.2 * w)) for n, w in zip(sources, wanted))
         dev = {w: surface_deviation(mesh, decimate(mesh, w)) for w in set(wanted) if w * 2 <= mesh.num_faces}
         deviation = tuple(dev.get(w, 0.0) for w in wanted)
-        return cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
+        facts = cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
                    median_edge_mm=median_edge, convex=convex, thickness_mm=thickness, pixel_mm=pixel,
                    covered_px=covered,
                    pixels=cam.width * cam.height, lights=len(scene.lights), unlit=unlit,
@@ -315,6 +318,11 @@ class SceneFacts:
                    spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated,
                    throughput_entries=estimate_throughput_entries(mesh, mat, rows=64) if throughput else -1,
                    source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius))
+        target = detail_faces(facts)
+        if target is None:
+            return facts
+        atlas_dev = dev[target] if target in dev else surface_deviation(mesh, decimate(mesh, target))
+        return dataclasses.replace(facts, atlas_deviation_mm=atlas_dev)
 
 
 #: SceneFacts.from_scene's cache: (hash of the scene, id of the mesh) -> (mesh, scene, facts).
@@ -644,6 +652,12 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             pairs_s, compile_s = _pair_time(gather, m["ref_t_pair"], m, "truncated" in warm)
         frame = pairs_s + m["splat_t_texel"] * grid * grid * lights + m["splat_f0"]
         return {"error": err, "setup_s": m["splat_s0"] + dec_s + compile_s, "frame_s": frame, "compile_s": compile_s}
+    # the atlas methods' mesh decimated to ``faces``: its surface strays from the true one, as the reference's
+    # decimated sources do (not fitted; the deviation scales as the squared edge, 1 / faces)
+    target = detail_faces(facts)
+    atlas_dev = 0.0
+    if method in ATLAS_METHODS and decimate and target and facts.atlas_deviation_mm:
+        atlas_dev = facts.atlas_deviation_mm * max(1.0, target / faces) / min(facts.ell_mm)
     if method in ("icdf", "hybrid"):
         u, d = max(facts.unlit, 0.1), depth(facts)
         n = int(knobs.get("samples", 4096))
@@ -670,7 +684,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             local = pairs if stride >= 0 else HybridRenderer.defaults["max_local_pairs"]
             frame = pair_s + m["hybrid_f0"] + m["hybrid_t_local"] * local + m["hybrid_t_exact"] * exact
             setup += m["hybrid_s0"] + compile_s + m["hybrid_t_local_build"] * local
-        return {"error": err, "setup_s": setup, "frame_s": frame, "compile_s": compile_s}
+        return {"error": err + atlas_dev, "setup_s": setup, "frame_s": frame, "compile_s": compile_s}
     if method == "lensch":
         res = int(knobs.get("atlas_resolution", 512))
         texel = math.sqrt(facts.area_mm2 / (ATLAS_UTILIZATION * res * res))
@@ -682,7 +696,8 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         setup = m["lensch_s0"] + m["lensch_s_face"] * faces + dec_s
         if blend:
             setup += m["lensch_s_kernel"] * res * res * k * k
-        return {"error": err, "setup_s": setup, "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
+        return {"error": err + atlas_dev, "setup_s": setup,
+                "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
 
 
@@ -766,7 +781,8 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                  * depth(facts) ** m[f"{fit}_q_depth"])
             floor = m[f"{fit}_floor"] * max(facts.unlit, 0.1) ** m.get(f"{fit}_u_floor", 0.0)
             power = m[f"{fit}_p"]
-            target = tolerance / MARGINS[method]
+            # the sampling error's share of the tolerance: what the decimated mesh's deviation leaves (predict)
+            target = tolerance / MARGINS[method] - (facts.atlas_deviation_mm / min(facts.ell_mm) if decimate else 0.0)
             r = dict(rules)
             if fit != method:
                 r["local_term"] = ("the surface local term's pairs do not fit even at stride 8: the split narrows, "
