@@ -133,11 +133,7 @@ def cast_shadow_faces(mesh: Mesh, lights: Sequence[Light], shadows: str = "raytr
     for light, vis in zip(lights, _visibility(mesh, lights, v, n, shadows)):
         if vis is None:
             continue
-        if isinstance(light, DirectionalLight):
-            to_light = -torch.as_tensor(light.direction, dtype=v.dtype, device=v.device).expand_as(v)
-        else:
-            to_light = torch.as_tensor(light.position, dtype=v.dtype, device=v.device) - v
-        facing = (n * to_light).sum(-1) > 0
+        facing = (n * incident_light(light, v.unsqueeze(0))[0][0]).sum(-1) > 0
         lit = (facing & (vis.reshape(-1) > 0.5))[mesh.faces]
         cast = (facing & (vis.reshape(-1) <= 0.5))[mesh.faces]
         edge |= lit.any(1) & cast.any(1)
@@ -313,6 +309,9 @@ class ReferenceRenderer(Renderer):
                              f"live on the mesh's own vertices), got {k['source_faces']!r}")
         self.source_mesh = source_mesh(self.mesh, k["source_faces"])
         self.fresnel = check_fresnel(k["fresnel"], ("exact", "schlick"))
+        refine = k["shadow_refine"]
+        if isinstance(refine, bool) or not isinstance(refine, int) or refine < 1:
+            raise ValueError(f"shadow_refine: expected an int >= 1, got {refine!r}")
         if k["shadows"] not in _SHADOWS:
             raise ValueError(f"shadows: expected one of {_SHADOWS}, got {k['shadows']!r}")
         if k["spacing_mm"] is None:
@@ -335,8 +334,6 @@ class ReferenceRenderer(Renderer):
         t1 = time.perf_counter()
         samples = self.samples
         refine = k["shadow_refine"]
-        if isinstance(refine, bool) or not isinstance(refine, int) or refine < 1:
-            raise ValueError(f"shadow_refine: expected an int >= 1, got {refine!r}")
         if refine > 1:
             edge = cast_shadow_faces(self.source_mesh, lights, k["shadows"])
             samples, _ = refine_samples(self.source_mesh, samples, edge, k["spacing_mm"], refine)
