@@ -423,3 +423,5 @@ def test_compile_policy_is_the_rule_use_compiled_applies(monkeypatch, mode):
         if mode == "auto" and work >= COLD_WORK:  # now warm: the warm rule
             assert fused.use_compiled("k", key, WARM_WORK - 1, (x,)) is False
             assert fused.use_compiled("k", key, WARM_WORK, (x,)) is True
+    with pytest.raises(ValueError, match="mode"):
+        fused.compile_policy(1.0, warm=False, mode="always")

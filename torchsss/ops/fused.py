@@ -111,6 +111,8 @@ def compile_policy(work: float, *, warm: bool, mode: str | None = None) -> bool:
         (True, False)
     """
     mode = compile_mode() if mode is None else mode
+    if mode not in ("off", "on", "auto"):
+        raise ValueError(f"mode: expected 'off', 'on', 'auto' or None, got {mode!r}")
     if mode == "off":
         return False
     if mode == "on":
