@@ -69,12 +69,18 @@ def test_sweep_configs_span_and_decimate():
 def test_peak_memory_sees_an_allocation():
     import time
 
+    import mmap
+
+    # Fresh pages from an anonymous map: a torch or numpy buffer may reuse heap pages that malloc kept resident
+    # after an earlier test freed them, and then the resident set does not grow (this failed once in CI).
+    size = 64 * 2**20
     with PeakMemory(interval=0.001) as pm:  # a transient allocation: the sampler thread sees it while it lives
-        x = torch.ones(64 * 2**20 // 4)  # 64 MiB, touched
+        buf = mmap.mmap(-1, size)
+        buf.write(b"\x01" * size)  # touched: every page resident
         deadline = time.monotonic() + 10.0  # on a loaded machine the sampler may wait well past 50 ms for a core
         while pm.available and pm._max - pm._start <= 32 and time.monotonic() < deadline:
             time.sleep(0.01)  # releases the GIL to the sampler
-        del x
+        buf.close()
     assert not pm.available or pm.peak_mib > 32
 
 
