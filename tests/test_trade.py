@@ -67,9 +67,8 @@ def test_sweep_configs_span_and_decimate():
 
 
 def test_peak_memory_sees_an_allocation():
-    import time
-
     import mmap
+    import time
 
     # Fresh pages from an anonymous map: a torch or numpy buffer may reuse heap pages that malloc kept resident
     # after an earlier test freed them, and then the resident set does not grow (this failed once in CI).

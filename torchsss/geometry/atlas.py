@@ -72,6 +72,7 @@ import xatlas
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from torchsss.geometry.gbuffer import interpolate_normals
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.geometry.raster import interpolate, rasterize_uv
 
@@ -679,7 +680,7 @@ def _chart_texels(mesh: Mesh, face_uvs64: Tensor, resolution: int) -> _ChartTexe
                          f"{resolution} with no chart texel")
     face_id = torch.where(chart, raster.face_id[0, 0], -1)
     position = interpolate(mesh.vertices.detach(), raster, mesh.faces)[0].to(dtype)
-    normal = interpolate(mesh.vertex_normals.detach(), raster, mesh.faces)[0].to(dtype)
+    normal = interpolate_normals(mesh, raster, mesh.corner_normals().detach())[0].to(dtype)
     normal = normal / normal.norm(dim=0, keepdim=True).clamp_min(torch.finfo(dtype).tiny)
     zero = torch.zeros((), dtype=dtype, device=chart.device)
     return _ChartTexels(chart, face_id, torch.where(chart, raster.bary[0].to(dtype), zero),

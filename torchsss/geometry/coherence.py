@@ -340,7 +340,7 @@ def coherent_light_samples(
     bary = previous.bary.to(device=device, dtype=dtype)
     corners = mesh.faces[fid]  # (K, 3)
     pos = (mesh.vertices[corners] * bary.unsqueeze(-1)).sum(1)
-    nrm = F.normalize((mesh.vertex_normals[corners] * bary.unsqueeze(-1)).sum(1), dim=-1)
+    nrm = F.normalize((mesh.corner_normals()[fid] * bary.unsqueeze(-1)).sum(1), dim=-1)
     to_light, _, e_perp = incident_light(light, pos.unsqueeze(0))
     cos = (nrm * to_light[0]).sum(-1)
     area = previous.area.to(device=device, dtype=dtype) * (

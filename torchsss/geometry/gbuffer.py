@@ -30,12 +30,12 @@ from torch import Tensor
 from torchsss.geometry.camera import Camera, transform_points
 from torchsss.geometry.lights import Light, _channel_eta, incident_light
 from torchsss.geometry.mesh import Mesh
-from torchsss.geometry.raster import interpolate, rasterize
+from torchsss.geometry.raster import Raster, interpolate, rasterize
 from torchsss.geometry.shadow import bounding_sphere, light_camera
 from torchsss.physics.fresnel import check_fresnel, transmittance
 
-__all__ = ["GBuffer", "LayerGBuffer", "LightView", "bend_towards_viewer", "camera_gbuffer", "layer_gbuffer",
-           "light_view", "view_cosine"]
+__all__ = ["GBuffer", "LayerGBuffer", "LightView", "bend_towards_viewer", "camera_gbuffer", "interpolate_normals",
+           "layer_gbuffer", "light_view", "view_cosine"]
 
 
 class GBuffer(NamedTuple):
@@ -81,6 +81,30 @@ class LayerGBuffer(NamedTuple):
     bary: Tensor
 
 
+def interpolate_normals(mesh: Mesh, raster: Raster, normals: Tensor | None = None) -> Tensor:
+    """Interpolate shading normals (not normalised) at a raster of ``mesh``, :math:`(B, 3, H, W)`.
+
+    Args:
+        mesh: the rasterized mesh, :math:`F` faces and :math:`V` vertices.
+        raster: :func:`~torchsss.geometry.raster.rasterize` (or ``rasterize_uv``) of ``mesh.faces``.
+        normals: :math:`(V, 3)` per-vertex or :math:`(F, 3, 3)` per-corner normals; default
+            :meth:`Mesh.corner_normals` (split at creases).
+
+    Raises:
+        ValueError: ``normals`` of another shape.
+    """
+    if normals is None:
+        normals = mesh.corner_normals()
+    if isinstance(normals, Tensor) and normals.shape == mesh.vertices.shape:
+        return interpolate(normals, raster, mesh.faces)
+    if isinstance(normals, Tensor) and normals.shape == (mesh.num_faces, 3, 3):
+        corners = torch.arange(3 * mesh.num_faces, device=mesh.faces.device).view(-1, 3)
+        return interpolate(normals.reshape(-1, 3), raster, corners)
+    got = tuple(normals.shape) if isinstance(normals, Tensor) else type(normals).__name__
+    raise ValueError(f"normals: expected a tensor of shape {tuple(mesh.vertices.shape)} (one per vertex) or "
+                     f"{(mesh.num_faces, 3, 3)} (one per face corner), got {got}")
+
+
 def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, int], *, farthest: bool = False,
                   fill: float = math.nan, normals: Tensor | None = None) -> LayerGBuffer:
     """Rasterize ``mesh`` through ``view_proj`` and interpolate positions and unit normals of one depth layer.
@@ -95,8 +119,9 @@ def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, in
         resolution: ``(H, W)``, or one int for a square image.
         farthest: keep the farthest surface instead of the nearest.
         fill: position value where nothing is seen (NaN by default; 0 for the zero-background G-buffers).
-        normals: :math:`(V, 3)` per-vertex normals to interpolate (default :attr:`Mesh.vertex_normals`; the
-            caustics pipeline passes :attr:`Mesh.vertex_normals_max`).
+        normals: :math:`(V, 3)` per-vertex or :math:`(F, 3, 3)` per-corner normals to interpolate (default
+            :meth:`Mesh.corner_normals`: smooth, split at creases; the caustics pipeline passes
+            :attr:`Mesh.vertex_normals_max`).
 
     Returns:
         :class:`LayerGBuffer` with batch 1, in the mesh's dtype and device; position and normal are differentiable
@@ -122,13 +147,7 @@ def layer_gbuffer(mesh: Mesh, view_proj: Tensor, resolution: int | tuple[int, in
     position = interpolate(mesh.vertices, raster, mesh.faces)
     if fill != 0.0:  # interpolate already gives zeros on the background (NaN != 0 too)
         position = torch.where(mask, position, torch.full_like(position, fill))
-    if normals is None:
-        normals = mesh.vertex_normals
-    elif not isinstance(normals, Tensor) or normals.shape != mesh.vertices.shape:
-        got = tuple(normals.shape) if isinstance(normals, Tensor) else type(normals).__name__
-        raise ValueError(f"normals: expected a tensor of shape {tuple(mesh.vertices.shape)} (one per vertex), "
-                         f"got {got}")
-    normal = _normalize(interpolate(normals, raster, mesh.faces)) * mask
+    normal = _normalize(interpolate_normals(mesh, raster, normals)) * mask
     depth = torch.where(mask, -raster.depth, raster.depth) if farthest else raster.depth
     return LayerGBuffer(position, normal, mask, depth, raster.face_id, raster.bary)
 

@@ -40,6 +40,7 @@ __all__ = [
 _WELD_REL_TOL = 1e-8  # weld tolerance, relative to the bounding-box diagonal
 _DEGENERATE_REL_AREA = 1e-12  # faces with area <= this x diagonal^2 are dropped
 _NORMAL_EPS = 1e-12
+CREASE_DEG = 60.0  # dihedral angle (degrees) above which :meth:`Mesh.corner_normals` splits the shading normal
 
 
 class MeshWarning(UserWarning):
@@ -338,6 +339,74 @@ class Mesh:
             return torch.where(ok, unit, self.vertex_normals)
 
         return self._cached("vertex_normals_max", compute)
+
+    def corner_normals(self, crease_deg: float = CREASE_DEG) -> Tensor:
+        """Unit shading normals per face corner, :math:`(F, 3, 3)`: smooth across soft edges, split at creases.
+
+        A corner's normal is the area-weighted average of the faces around its vertex whose normals lie within
+        ``crease_deg`` of its own face's (three.js's ``toCreasedNormals`` rule). Where no two faces around a vertex
+        differ by more than ``crease_deg`` this is :attr:`vertex_normals` (on a scan, almost every vertex); at a box's
+        right-angled edge each side keeps its own flat normal instead of one smoothed over the edge at 45°, which
+        tilts the irradiance of every pixel on the bevel it fakes (a 40 mm slab lit from the front: splat 5.2% off
+        with the smoothed normals, 0.3% with face normals). Shading (G-buffers, surface samples, atlas texels)
+        interpolates these.
+
+        Args:
+            crease_deg: dihedral angle in degrees above which an edge is a crease, in (0, 180].
+
+        Returns:
+            :math:`(F, 3, 3)` unit normals (face, corner, xyz), differentiable w.r.t. the vertices.
+
+        Raises:
+            TypeError: a non-numeric ``crease_deg``.
+            ValueError: ``crease_deg`` outside (0, 180].
+
+        Examples:
+            >>> from torchsss.geometry.procedural import slab
+            >>> m = slab(10.0, 10.0, 2.0, segments=2, dtype=torch.float64)
+            >>> bool(torch.allclose(m.corner_normals(), m.face_normals[:, None].expand(-1, 3, -1)))  # all flat
+            True
+            >>> bool(torch.allclose(m.corner_normals(180.0), m.vertex_normals[m.faces]))  # no crease: smooth
+            True
+        """
+        crease = _check_positive_number(crease_deg, "crease_deg")
+        if crease > 180.0:
+            raise ValueError(f"crease_deg: expected an angle in (0, 180] degrees, got {crease_deg!r}")
+        return self._cached(f"corner_normals_{crease!r}", lambda: self._corner_normals(math.cos(math.radians(crease))))
+
+    def _corner_normals(self, cos_crease: float) -> Tensor:
+        faces, cross, fn = self.faces, self._cross(), self.face_normals
+        smooth = self.vertex_normals[faces]  # (F, 3, 3)
+        if faces.shape[0] == 0:
+            return smooth
+        corner_vertex = faces.reshape(-1)
+        # A vertex needs splitting only if two of its faces differ by more than the crease; all faces within half the
+        # crease of the vertex normal is a sufficient test that none do, so only the others are paired exactly.
+        cos_half = math.cos(0.5 * math.acos(max(-1.0, min(1.0, cos_crease))))
+        dev = (fn.detach()[:, None, :] * smooth.detach()).sum(-1).reshape(-1)  # (3F,)
+        suspect = torch.zeros(self.num_vertices, dtype=torch.bool, device=faces.device)
+        suspect[corner_vertex[dev < cos_half]] = True
+        corners = torch.nonzero(suspect[corner_vertex]).squeeze(1)
+        if corners.numel() == 0:
+            return smooth
+        order = torch.argsort(corner_vertex[corners], stable=True)
+        corners = corners[order]
+        _, counts = torch.unique_consecutive(corner_vertex[corners], return_counts=True)
+        starts = torch.cumsum(counts, 0) - counts
+        degree = counts.repeat_interleave(counts)  # per sorted corner: how many corners share its vertex
+        first = starts.repeat_interleave(counts)
+        total = int(degree.sum())
+        offset = torch.arange(total, device=faces.device) - (torch.cumsum(degree, 0) - degree).repeat_interleave(degree)
+        a = corners.repeat_interleave(degree)  # every ordered pair of corners around one vertex
+        b = corners[first.repeat_interleave(degree) + offset]
+        fa, fb = a // 3, b // 3
+        keep = (fn.detach()[fa] * fn.detach()[fb]).sum(-1) >= cos_crease
+        acc = torch.zeros(corner_vertex.shape[0], 3, dtype=cross.dtype, device=cross.device)
+        acc = acc.index_add(0, a[keep], cross[fb[keep]])[corners]
+        flat = smooth.reshape(-1, 3)
+        split = torch.where(acc.detach().abs().amax(-1, keepdim=True) > 0, F.normalize(acc, dim=-1, eps=_NORMAL_EPS),
+                            flat[corners])
+        return flat.index_copy(0, corners, split).reshape(smooth.shape)
 
     @property
     def vertex_areas(self) -> Tensor:

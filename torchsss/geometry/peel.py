@@ -167,7 +167,7 @@ def environment_splats(mesh: Mesh, env: EnvironmentLight, resolution: int, eta: 
         area = torch.zeros(0, dtype=dtype, device=device)
     corners = mesh.faces.index_select(0, fid)  # (S, 3)
     position = (bary[:, :, None] * mesh.vertices[corners]).sum(1)
-    normal = F.normalize((bary[:, :, None] * mesh.vertex_normals[corners]).sum(1), dim=-1, eps=1e-12)
+    normal = F.normalize((bary[:, :, None] * mesh.corner_normals()[fid]).sum(1), dim=-1, eps=1e-12)
     irradiance = environment_irradiance(env, normal[None], eta, fresnel=fresnel)
     flux = irradiance * area[None, :, None]
     return EnvironmentSplats(position[None], normal[None], irradiance, area[None, :, None], flux, fid, bary,

@@ -26,7 +26,7 @@ class SurfaceSamples(NamedTuple):
 
     Attributes:
         position: :math:`(N, 3)` mm.
-        normal: :math:`(N, 3)` unit shading normals (interpolated vertex normals).
+        normal: :math:`(N, 3)` unit shading normals (interpolated :meth:`~torchsss.geometry.mesh.Mesh.corner_normals`).
         area: :math:`(N,)` mm^2, summing to the mesh area.
         face_id: :math:`(N,)` int64.
         bary: :math:`(N, 3)` barycentrics within the face.
@@ -160,7 +160,7 @@ def _folds(mesh: Mesh, spacing_mm: float) -> Tensor:
 def _subdivide(mesh: Mesh, face_ids: Tensor, n_per_face: Tensor) -> SurfaceSamples:
     """Samples at the sub-triangle centroids of faces ``face_ids``, each split :math:`n^2` ways (``n_per_face``)."""
     tri = mesh.triangles()[face_ids]
-    vn = mesh.vertex_normals
+    cn = mesh.corner_normals()
     pos, nrm, area, fid, bary = [], [], [], [], []
     for n in torch.unique(n_per_face).tolist():
         sel = torch.nonzero(n_per_face == n).squeeze(1)
@@ -168,7 +168,7 @@ def _subdivide(mesh: Mesh, face_ids: Tensor, n_per_face: Tensor) -> SurfaceSampl
         b = subdivision_barycentrics(n, dtype=tri.dtype, device=tri.device)  # (S, 3)
         corners = tri[sel]  # (f, 3, 3)
         pos.append(torch.einsum("sk,fkc->fsc", b, corners).reshape(-1, 3))
-        ncorners = vn[mesh.faces[faces]]
+        ncorners = cn[faces]
         nrm.append(F.normalize(torch.einsum("sk,fkc->fsc", b, ncorners), dim=-1, eps=1e-12).reshape(-1, 3))
         area.append((mesh.face_areas[faces] / (n * n)).repeat_interleave(b.shape[0]))
         fid.append(faces.repeat_interleave(b.shape[0]))
