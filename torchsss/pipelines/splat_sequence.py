@@ -21,7 +21,7 @@ from torch import Tensor
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.coherence import AttachedSamples, coherent_light_samples
 from torchsss.geometry.environment import EnvironmentLight
-from torchsss.geometry.gbuffer import camera_gbuffer, light_view, view_cosine
+from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lights import Light
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.modules.material import material_module
@@ -29,7 +29,7 @@ from torchsss.modules.splat import SplatTranslucency
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.renderer import RenderResult
-from torchsss.pipelines.splat import splat_grid
+from torchsss.pipelines.splat import MAX_STRETCH, _light_sources, splat_grid
 
 __all__ = ["render_splat_sequence"]
 
@@ -49,6 +49,7 @@ def render_splat_sequence(
     dtype: torch.dtype = torch.float32,
     radius_px: float = 1.0,
     weights: str = "tent",
+    max_stretch: float | None = MAX_STRETCH,
 ) -> Iterator[RenderResult]:
     """Render the frames of a mesh sequence with Shah's splatting, one :class:`RenderResult` per mesh (lazily).
 
@@ -69,6 +70,9 @@ def render_splat_sequence(
             pixels.
         weights: ``coherent``: ``"tent"`` or ``"nearest"``
             (:func:`~torchsss.geometry.coherence.coherent_light_samples`).
+        max_stretch: without ``coherent``: the longest light-view footprint one splat stands for, as in
+            :func:`~torchsss.pipelines.splat.render_splat` (None: one splat per pixel). Coherent frames keep one
+            sample per light-view pixel (the samples they carry between frames are not cut under grazing light).
 
     Yields:
         A :class:`~torchsss.pipelines.reference.RenderResult` per frame: radiance :math:`(1, 3, H, W)`; ``stats``
@@ -103,12 +107,12 @@ def render_splat_sequence(
         raise ValueError(f"grid: expected an int >= 2 or None, got {grid!r}")
     return _frames(meshes, material, lights, camera, coherent=bool(coherent), eps=eps, grid=grid,
                    max_grid=max_grid, oversample=oversample, method=method, dtype=dtype, radius_px=radius_px,
-                   weights=weights)
+                   weights=weights, max_stretch=max_stretch)
 
 
 def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], camera: Camera, *, coherent: bool,
             eps: float, grid: int | None, max_grid: int, oversample: float, method: str, dtype: torch.dtype,
-            radius_px: float, weights: str) -> Iterator[RenderResult]:
+            radius_px: float, weights: str, max_stretch: float | None) -> Iterator[RenderResult]:
     profile = material_module(material, dtype=None if isinstance(material, torch.nn.Module) else dtype)
     module = SplatTranslucency(profile, eps=eps, method=method)
     faces: Tensor | None = None
@@ -137,10 +141,8 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
                     mesh, light, n, profile.eta, previous[k], radius_px=radius_px, weights=weights)
                 reused, new = reused + st["reused"], new + st["new"]
             else:
-                lv = light_view(mesh, light, n, profile.eta)
-                sel = lv.mask[0, 0]
-                src_pos = lv.position[0].permute(1, 2, 0)[sel].unsqueeze(0)
-                src_flux = lv.flux[0].permute(1, 2, 0)[sel].unsqueeze(0)
+                pos, flux, _, _ = _light_sources(mesh, light, n, profile.eta, 0, max_stretch)
+                src_pos, src_flux = pos.unsqueeze(0), flux.unsqueeze(0)
             splats += int(src_pos.shape[1])
             total = total + src_flux[0].sum(0)
             with torch.no_grad():
