@@ -141,14 +141,14 @@ def test_dense_values_in_blocks_equal_one_expression(small, monkeypatch):
 
 
 def test_throughput_layout_is_the_smaller_one():
-    # dense: N^2 (5 + 4C) bytes; sparse: nnz (44 + 8C): at C = 3 they cross at nnz / N^2 = 17 / 68 = 0.25
+    # dense: N^2 (5 + 4C) bytes; sparse: nnz (24 + 8C) (int32 pattern): at C = 3 they cross at nnz / N^2 = 17 / 48
     n = 1000
-    assert throughput_layout(n, n * n // 4) == "dense"
-    assert throughput_layout(n, n * n // 4 - 1) == "sparse"
+    assert throughput_layout(n, 354_167) == "dense"
+    assert throughput_layout(n, 354_166) == "sparse"
     assert throughput_layout(n, n * n) == "dense" and throughput_layout(n, 0) == "sparse"
-    # one channel: dense 9 bytes a pair, sparse 52 an entry
-    assert throughput_layout(n, math.ceil(n * n * 9 / 52), channels=1) == "dense"
-    assert throughput_layout(n, n * n * 9 // 52 - 1, channels=1) == "sparse"
+    # one channel: dense 9 bytes a pair, sparse 32 an entry
+    assert throughput_layout(n, math.ceil(n * n * 9 / 32), channels=1) == "dense"
+    assert throughput_layout(n, n * n * 9 // 32 - 1, channels=1) == "sparse"
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="num_vertices"):
             throughput_layout(bad, 10)

@@ -698,9 +698,10 @@ class DenseThroughput(NamedTuple):
 
 
 #: Bytes a kept entry of a sparse throughput costs in a built Lensch module, besides its values: the distance and
-#: source area (float32) and four int64 index arrays of the pattern (rows, cols, the transpose's columns and
-#: permutation); the CSR product's cached matrix adds another 4 bytes of index per entry and its values.
-_SPARSE_ENTRY_BYTES = 4 + 4 + 4 * 8 + 4
+#: source area (float32) and the pattern's three int32 index arrays (rows, cols and the permutation into column
+#: order, :class:`~torchsss.modules.lensch.GlobalResponse`); the CSR product's cached matrix adds another int32
+#: index per entry and its values.
+_SPARSE_ENTRY_BYTES = 4 + 4 + 3 * 4 + 4
 #: Bytes a vertex pair of a dense throughput costs besides its values: the distance (float32) and the keep flag.
 _DENSE_PAIR_BYTES = 4 + 1
 
@@ -708,11 +709,11 @@ _DENSE_PAIR_BYTES = 4 + 1
 def throughput_layout(num_vertices: int, entries: int, channels: int = 3) -> str:
     """``"dense"`` or ``"sparse"``: the throughput's layout that holds ``entries`` kept pairs in fewer bytes.
 
-    A sparse entry costs its distance, source area and four int64 pattern indices plus an index of the cached CSR
-    matrix (44 bytes) and its values twice (the values and the CSR copy, :math:`2 \\cdot 4C`); a dense pair its
+    A sparse entry costs its distance, source area and three int32 pattern indices plus an int32 index of the cached
+    CSR matrix (24 bytes) and its values twice (the values and the CSR copy, :math:`2 \\cdot 4C`); a dense pair its
     distance and keep flag (5 bytes) and its values once (:math:`4C`). At :math:`C = 3` dense is smaller from a
-    density of about a quarter; the default scene's spot (2,930 vertices, 6.4M entries, 74% dense) holds 0.41 GB
-    sparse and 0.15 GB dense.
+    density of about 0.35; the default scene's spot (2,930 vertices, 6.4M entries, 74% dense) holds 0.31 GB sparse and
+    0.15 GB dense.
 
     Examples:
         >>> throughput_layout(2930, 6_358_446), throughput_layout(20000, 6_000_000)
