@@ -67,6 +67,14 @@ def test_head_on_light_is_untouched_and_max_split_caps():
     pos, mask, flux, corners, light, texel, vp = _tilted_plane(1e4)  # edge-on: capped
     p, _, _ = split_grazing(pos, mask, flux, corners, light, texel, vp, max_split=5)
     assert p.shape[0] == 64 * 5
+    # exactly edge-on (cos = 0): capped, every piece finite and on its face, the flux kept
+    flat = torch.zeros_like(pos)
+    flat[:, :2] = pos[:, :2]
+    tri = torch.tensor([[-50.0, -50, 0], [50, -50, 0], [0, 50, 0]], dtype=D).reshape(1, 9, 1, 1).expand_as(corners)
+    sideways = torch.tensor([1.0, 0.0, 0.0], dtype=D).view(1, 3, 1, 1).expand_as(light)
+    p, f, _ = split_grazing(flat, mask, flux, tri, sideways, texel, vp, max_split=8)
+    assert p.shape[0] == 64 * 8 and bool(torch.isfinite(p).all()) and float(p[:, 2].abs().max()) == 0.0
+    torch.testing.assert_close(f.sum(0), flux.sum((0, 2, 3)), rtol=1e-12, atol=0)
     empty = torch.zeros(1, 1, 8, 8, dtype=torch.bool)
     p, f, index = split_grazing(pos, empty, flux, corners, light, texel, vp)
     assert p.shape == (0, 3) and f.shape == (0, 3) and index.shape == (0,)
