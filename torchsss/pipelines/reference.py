@@ -40,6 +40,7 @@ from torchsss.geometry.mesh import Mesh
 from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.sampling import SurfaceSamples, refine_samples, surface_samples
 from torchsss.geometry.shadow import build_shadow_map, shadow_visibility
+from torchsss.geometry.transfer import SurfaceLocator, project_samples
 from torchsss.geometry.visibility import point_inside, ray_visibility
 from torchsss.modules.material import material_module
 from torchsss.ops.fused import expected_work
@@ -258,6 +259,12 @@ class ReferenceRenderer(Renderer):
             least one sample, so a finely tessellated scan has far more samples than its spacing asks for
             (a 268k-face scan: 268k samples where the spacing needs ~10k). The planner sets it to the
             spacing's face count (:mod:`torchsss.plan`).
+        project_sources: with ``source_faces``, move every sample to its closest point on the full mesh, with the
+            full mesh's normal there, and shadow it against the full mesh
+            (:func:`~torchsss.geometry.transfer.project_samples`; default True): the decimation then picks how many
+            samples, not where they are. Measured against the full-source reference, a back-lit 25 mm apple igea
+            (40k faces) at 128 x 128: sources from 11,484 faces at ``eps=0.05`` 1.53% -> 0.58%, from 5,625 at
+            ``eps=0.2`` 2.95% -> 1.11%. False: the decimated surface's own samples.
         stride: evaluate :math:`B` at every ``stride``-th pixel in each direction and interpolate it where the
             surface is smooth, exactly at edges (:mod:`torchsss.pipelines.coarse`); 1: every pixel. None
             (default): the supersampling factor of ``render(..., spp=s * s)``, so that a supersampled frame
@@ -294,7 +301,7 @@ class ReferenceRenderer(Renderer):
     method = "reference"
     defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
                     max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=None, refine=0.2,
-                    shadow_refine=2)
+                    shadow_refine=2, project_sources=True)
 
     def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
                  irradiance_scale: Tensor | None = None, **kwargs) -> None:
@@ -324,6 +331,12 @@ class ReferenceRenderer(Renderer):
             raise ValueError(f"spacing_mm: expected a finite value > 0, got {k['spacing_mm']!r}")
         k["spacing_mm"] = spacing
         self.samples = surface_samples(self.source_mesh, spacing, max_samples=k["max_samples"])
+        if not isinstance(k["project_sources"], bool):
+            raise ValueError(f"project_sources: expected a bool, got {k['project_sources']!r}")
+        self._locator = None
+        if k["project_sources"] and self.source_mesh is not self.mesh:
+            self._locator = SurfaceLocator(self.mesh)
+            self._projected = project_samples(self._locator, self.samples)
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh = self.knobs, self.mesh
@@ -333,13 +346,21 @@ class ReferenceRenderer(Renderer):
         gbuf = camera_gbuffer(mesh, camera)
         t1 = time.perf_counter()
         samples = self.samples
+        projected = self._projected if self._locator is not None else None
         refine = k["shadow_refine"]
         if refine > 1:
             edge = cast_shadow_faces(self.source_mesh, lights, k["shadows"])
-            samples, _ = refine_samples(self.source_mesh, samples, edge, k["spacing_mm"], refine)
+            samples, kept = refine_samples(self.source_mesh, samples, edge, k["spacing_mm"], refine)
             stats["shadow_edge_faces"] = int(edge.sum())
             stats["samples"] = int(samples.area.shape[0])
-        e = sample_irradiance(self.source_mesh, samples, lights, eta, shadows=k["shadows"], fresnel=self.fresnel)
+            if projected is not None and samples is not self.samples:  # refined: project the new samples too
+                fine = SurfaceSamples(*(x[int(kept.sum()):] for x in samples))  # the refined faces' samples, last
+                projected = SurfaceSamples(*(torch.cat([a[kept], b]) for a, b in
+                                             zip(projected, project_samples(self._locator, fine))))
+        if projected is not None:  # on the full mesh: its normals and its shadows
+            samples = projected
+        e = sample_irradiance(mesh if projected is not None else self.source_mesh, samples, lights, eta,
+                              shadows=k["shadows"], fresnel=self.fresnel)
         stats["t_irradiance_s"] = time.perf_counter() - t1
         mask = gbuf.mask[0, 0]
         h, w = camera.resolution
