@@ -681,7 +681,9 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         if knobs.get("source_faces") and eps in REFERENCE_EPS and facts.source_deviation_mm:
             # sources on the decimated surface sit this far off the true one: the dipole's relative change over
             # a length d is about d / (1/sigma_tr) (not fitted; the 10 mm igea scan at 951 source faces: 0.027 mm
-            # over 0.68 mm, 3.9%, measured 4.0%)
+            # over 0.68 mm, 3.9%, measured 4.0%); the reference now projects its sources onto the full mesh
+            # (``project_sources``), so this is a conservative bound (a back-lit 25 mm apple igea: 0.43% measured
+            # where 0.65% is predicted)
             err += facts.source_deviation_mm[REFERENCE_EPS.index(eps)] / min(facts.ell_mm)
         shadow = 0.2 if knobs.get("shadows") == "none" else 1.0
         pair_s, compile_s = _pair_time(px * n, m["ref_t_pair"], m, "plain" in warm)
