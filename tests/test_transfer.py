@@ -157,3 +157,27 @@ def test_reference_sources_projected_onto_the_full_mesh():
     assert e_proj < 0.5 * e_dec, (e_proj, e_dec)
     with pytest.raises(ValueError, match="project_sources"):
         build("reference", m, "skin1", source_faces=300, project_sources=1)
+
+
+def test_project_samples_gradcheck_and_empty():
+    """Differentiable w.r.t. the detailed mesh's vertices (positions and creased normals; the closest faces and
+    barycentrics, found once, are a sampling decision); no samples give no samples."""
+    from torchsss.geometry.mesh import Mesh
+    from torchsss.geometry.sampling import surface_samples
+    from torchsss.geometry.transfer import project_samples
+
+    fine = sphere(10.0, 2, dtype=torch.float64)
+    samples = surface_samples(decimate(fine, 40), 4.0)
+    locator = SurfaceLocator(fine)
+    w = torch.randn(samples.position.shape[0], 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+    def f(v):
+        loc = SurfaceLocator.__new__(SurfaceLocator)
+        loc.__dict__.update(locator.__dict__, mesh=Mesh(v, fine.faces))
+        out = project_samples(loc, samples)
+        return (torch.cat([out.position, out.normal], -1) * w).sum()
+
+    assert torch.autograd.gradcheck(f, (fine.vertices.clone().requires_grad_(True),))
+    empty = samples._replace(**{k: getattr(samples, k)[:0] for k in samples._fields})
+    out = project_samples(locator, empty)
+    assert out.position.shape == (0, 3) and out.face_id.shape == (0,)
