@@ -49,6 +49,33 @@ def test_irradiance_atlas_matches_surface_irradiance(small):
         torch.testing.assert_close(e, want, rtol=1e-10, atol=1e-12)
 
 
+def test_irradiance_atlas_lights_only_valid_texels_as_the_full_image_does():
+    """The frame's irradiance atlas (valid texels only) against the whole-image formulation, shadowed and not."""
+    from torchsss.geometry import build_shadow_map, shadow_visibility, torus
+    from torchsss.geometry.atlas_frame import irradiance_atlas
+
+    mesh = torus(8.0, 3.0, 24, 12, dtype=torch.float64)  # the ring shadows itself under an oblique light
+    atlas = build_atlas(mesh, 64, kernel_size=5)
+    index, pos, nrm = atlas.valid_texels
+    assert index.shape == (int(atlas.valid_mask.sum()),) and pos.is_contiguous() and nrm.is_contiguous()
+    torch.testing.assert_close(pos, atlas.position.reshape(3, -1)[:, index].T)
+    torch.testing.assert_close(nrm, atlas.normal.reshape(3, -1)[:, index].T)
+    pts_all = atlas.position.flatten(2).transpose(1, 2)
+    nrm_all = atlas.normal.flatten(2).transpose(1, 2)
+    lights = [PointLight((30.0, 5.0, 12.0), (4e3, 3e3, 2e3)), DirectionalLight((-0.3, 0.2, -0.93), (1.0, 2.0, 3.0))]
+    for subset in (lights[:1], lights):
+        got = irradiance_atlas(mesh, atlas, subset, 1.4, shadow_resolution=256)
+        vis = [shadow_visibility(build_shadow_map(mesh, light, 256), pts_all, nrm_all, light) for light in subset]
+        assert any(bool((v[atlas.valid_mask.reshape(1, -1)] == 0).any()) for v in vis)  # shadows do occur
+        want = surface_irradiance(pts_all, nrm_all, subset, 1.4, visibility=vis)
+        want = want.transpose(1, 2).reshape(1, 3, 64, 64) * atlas.valid_mask
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-14)
+    # gradients reach a tensor eta through the scatter into the image
+    eta = torch.tensor(1.4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: irradiance_atlas(mesh, atlas, lights, x, shadow_resolution=64)
+                                    .sum(), (eta,))
+
+
 def test_local_response_is_the_kernel_convolution(small):
     _, atlas = small
     geom = local_kernel_geometry(atlas, 5)
@@ -154,6 +181,31 @@ def test_compact_blending_correction_is_the_full_one_at_its_receivers(small):
         blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index.to(torch.int32))
     with pytest.raises(ValueError, match="index: expected flat texels"):
         blending_weights(mesh, atlas, mat, kernel_size=5, index=comp.index + 64 * 64)
+
+
+def test_global_response_compact_texels_equal_the_whole_image_form(small, monkeypatch):
+    """Outside tracing the per-frame gather and scatter run on the texels that carry anything; the traced (exported)
+    whole-image form gives the same values and gradients, whatever lies in the invalid texels."""
+    import torchsss.modules.lensch as lensch_module
+
+    mesh, atlas = small
+    mat = _material()
+    w = vertex_weights(mesh, atlas)
+    tp = build_throughput(mesh, _dip(*Material.from_json("skin1").tensors(torch.float64)), threshold=1e-4)
+    glob = GlobalResponse(w, tp, mat, atlas.valid_mask)
+    assert glob._gather_texels.numel() == int(atlas.valid_mask.sum()) < 64 * 64
+    e = torch.rand(2, 3, 64, 64, dtype=torch.float64)  # nonzero in invalid texels too
+    vv = torch.rand(2, mesh.num_vertices, 3, dtype=torch.float64, requires_grad=True)
+    compact = (glob.vertex_irradiance(e), glob.reconstruct(vv), glob(e))
+    g_compact = torch.autograd.grad(glob.reconstruct(vv).square().sum(), vv)[0]
+    monkeypatch.setattr(lensch_module, "is_tracing", lambda: True)
+    whole = (glob.vertex_irradiance(e), glob.reconstruct(vv), glob(e))
+    g_whole = torch.autograd.grad(glob.reconstruct(vv).square().sum(), vv)[0]
+    for a, b in zip(compact, whole):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(g_compact, g_whole, rtol=1e-12, atol=1e-14)
+    monkeypatch.undo()
+    assert torch.autograd.gradcheck(lambda x: glob.reconstruct(x), (vv[:1, :, :1].detach().clone().requires_grad_(),))
 
 
 def test_global_response_against_dense_sums(small):

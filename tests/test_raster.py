@@ -570,3 +570,48 @@ def test_device_and_dtype_follow_inputs(device, dtype):
     ref = rasterize(clip.cpu().double(), faces, cam.resolution)
     assert torch.equal(ras.face_id.cpu(), ref.face_id)
     assert math.isclose(float(ras.bary.sum()), float(ref.bary.sum()), rel_tol=1e-5)
+
+
+# -- the depth pass alone -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_rasterize_depth_is_rasterize_depth_without_barycentrics(dtype):
+    """Same coverage and winner as rasterize; the depth within the quantisation step (plus float rounding)."""
+    from torchsss.geometry.procedural import torus
+    from torchsss.geometry.raster import rasterize_depth
+
+    mesh = torus(8.0, 3.0, 32, 16, dtype=dtype)  # overlapping layers: the depth test decides
+    cam = Camera(eye=(5.0, 30.0, 25.0), target=(0.0, 0.0, 0.0), width=96, height=80, near=20.0, far=60.0)
+    clip = transform_points(mesh.vertices, cam.view_proj(dtype=dtype))  # the near plane clips part of the ring
+    full = rasterize(clip, mesh.faces, (80, 96))
+    depth = rasterize_depth(clip, mesh.faces, (80, 96))
+    assert depth.shape == (1, 1, 80, 96) and depth.dtype == dtype
+    assert bool((depth.isfinite() == full.mask).all())
+    assert 0 < int(full.mask.sum()) < 80 * 96
+    tol = 2.0 ** -30 + (1e-12 if dtype == F64 else 1e-5)
+    assert float((depth[full.mask] - full.depth[full.mask]).abs().max()) <= tol
+    assert bool(depth[~full.mask].isinf().all())
+    # a batch of two views, and culling, as rasterize
+    top = Camera(eye=(0.0, 0.0, 40.0), target=(0, 0, 0), width=96, height=80)
+    clip_top = transform_points(mesh.vertices, top.view_proj(dtype=dtype)).reshape(-1, 4)
+    clip2 = torch.stack([clip.reshape(-1, 4), clip_top])
+    for cull in (False, True):
+        full2 = rasterize(clip2, mesh.faces, (80, 96), cull_backfaces=cull)
+        depth2 = rasterize_depth(clip2, mesh.faces, (80, 96), cull_backfaces=cull)
+        assert bool((depth2.isfinite() == full2.mask).all())
+        assert float((depth2[full2.mask] - full2.depth[full2.mask]).abs().max()) <= tol
+    assert not depth.requires_grad
+
+
+def test_rasterize_depth_empty_and_bad_input():
+    from torchsss.geometry.raster import rasterize_depth
+
+    clip = _clip([[-1.0, -1.0], [3.0, -1.0], [-1.0, 3.0]], z=0.25)
+    assert bool(rasterize_depth(clip, torch.zeros(0, 3, dtype=torch.long), (4, 5)).isinf().all())
+    assert torch.allclose(rasterize_depth(clip, torch.tensor([[0, 1, 2]]), (4, 5)), torch.full((1, 1, 4, 5), 0.25,
+                                                                                               dtype=F64))
+    with pytest.raises(TypeError, match="clip_pos"):
+        rasterize_depth(clip.long(), torch.tensor([[0, 1, 2]]), (4, 5))
+    with pytest.raises(ValueError, match="faces"):
+        rasterize_depth(clip, torch.tensor([[0, 1, 7]]), (4, 5))
+    with pytest.raises(ValueError):
+        rasterize_depth(clip, torch.tensor([[0, 1, 2]]), (0, 5))

@@ -55,6 +55,25 @@ def test_shadow_of_an_occluder(light, half):
     assert float((vis_map == vis_ray).float().mean()) > 0.99
 
 
+@pytest.mark.parametrize("light", [DirectionalLight((0.3, -0.2, -0.93), 1.0), PointLight((30.0, 5.0, 40.0), 1.0),
+                                   SpotLight((0, 0, 100), (0, 0, -1), 1.0, cone_deg=30)])
+def test_shadow_map_depth_is_the_interpolated_view_depth(light):
+    """The depth read from the z-buffer equals the perspective-correct interpolation of the view depth."""
+    from torchsss.geometry.camera import transform_points
+    from torchsss.geometry.raster import interpolate, rasterize
+    from torchsss.geometry.shadow import bounding_sphere
+
+    mesh = _occluder_scene()
+    sm = build_shadow_map(mesh, light, 256)
+    centre, radius = bounding_sphere(mesh)
+    cam = light_camera(light, centre, radius, 256)
+    raster = rasterize(transform_points(mesh.vertices, cam.view_proj()), mesh.faces, (256, 256))
+    want = interpolate(-transform_points(mesh.vertices, cam.view_matrix())[..., 2:3], raster, mesh.faces)
+    assert bool((sm.depth.isfinite() == raster.mask).all()) and int(raster.mask.sum()) > 1000
+    err = (sm.depth[raster.mask] - want[raster.mask]).abs() / want[raster.mask]
+    assert float(err.max()) < 1e-5
+
+
 def test_no_self_shadow_acne_and_terminator():
     mesh = sphere(10.0, 4)
     light = PointLight((30.0, 40.0, 60.0), 1.0)

@@ -63,6 +63,7 @@ import os
 import pickle
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from types import SimpleNamespace
 
 import numpy as np
@@ -166,6 +167,19 @@ class Atlas:
     def shape(self) -> tuple[int, int]:
         """``(H, W)`` of the atlas images."""
         return (self.resolution, self.resolution)
+
+    @cached_property
+    def valid_texels(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The valid texels as contiguous point lists, built once: ``(index, position, normal)``.
+
+        ``index`` :math:`(V,)` int64 flat texel indices (row-major) of ``valid_mask``; ``position`` and ``normal``
+        :math:`(V, 3)` contiguous (the per-frame light and shadow queries of the atlas methods run on these, not on
+        all :math:`H W` texels through a strided view).
+        """
+        index = self.valid_mask.reshape(-1).nonzero().squeeze(1)
+        position = self.position.reshape(3, -1).index_select(1, index).T.contiguous()
+        normal = self.normal.reshape(3, -1).index_select(1, index).T.contiguous()
+        return index, position, normal
 
     def sample(self, image: Tensor, uv: Tensor) -> Tensor:
         """Bilinear lookup of an atlas image at texture coordinates (e.g. for camera pixels reading the atlas).

@@ -39,11 +39,12 @@ def irradiance_atlas(mesh: Mesh, atlas: Atlas, lights: Sequence[Light], eta: flo
         torch.Size([1, 3, 64, 64])
     """
     h, w = atlas.shape
-    pts = atlas.position.flatten(2).transpose(1, 2)
-    nrm = atlas.normal.flatten(2).transpose(1, 2)
+    index, pts, nrm = atlas.valid_texels  # only valid texels are lit; the rest of the image stays 0
+    pts, nrm = pts.unsqueeze(0), nrm.unsqueeze(0)
     vis = [shadow_visibility(build_shadow_map(mesh, light, shadow_resolution), pts, nrm, light) for light in lights]
-    e = surface_irradiance(pts, nrm, list(lights), eta, visibility=vis, fresnel=fresnel)
-    return e.transpose(1, 2).reshape(1, 3, h, w) * atlas.valid_mask
+    e = surface_irradiance(pts, nrm, list(lights), eta, visibility=vis, fresnel=fresnel)[0]
+    image = torch.zeros(3, h * w, dtype=e.dtype, device=e.device).index_copy(1, index, e.T)
+    return image.reshape(1, 3, h, w)
 
 
 def camera_uv(mesh: Mesh, atlas: Atlas, camera: Camera) -> tuple[Tensor, Tensor]:

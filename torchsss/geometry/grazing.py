@@ -18,7 +18,8 @@ surface it follows the surface (near a sphere's terminator the strip on the tang
 object, while the neighbouring pixels hold where the tube really meets it). A piece whose four neighbours are not
 all lit (the light view's silhouette), that would leave the face's plane by more than 8.5°, or lie more than 1.5 times
 as far as on the plane (a depth jump to another surface: along a grazing ray it is nearly in the plane, so the length
-is what tells) takes its place on the face's plane instead, moved into the face.
+is what tells) takes its place on the face's plane instead, moved to its closest point on the face
+(:func:`~torchsss.geometry.transfer.closest_point_on_triangle`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from torch import Tensor
 
 from torchsss._checks import check_shape
 from torchsss.geometry.camera import transform_points
+from torchsss.geometry.transfer import closest_point_on_triangle
 
 __all__ = ["split_grazing"]
 
@@ -140,20 +142,10 @@ def split_grazing(position: Tensor, mask: Tensor, flux: Tensor, face_corners: Te
     sin = (across * n).sum(-1)
     along = across - (sin / (sign * cos.abs().clamp_min(1e-12))).unsqueeze(-1) * light.detach()  # |along| = 1/cos
     plane = pos[src] + (t * texel[src].detach()).unsqueeze(-1) * along[src]
-    fallback = _clamp_to_triangle(plane, tri[src])
+    corner = tri[src]  # the plane point moved to its closest point on the face (Ericson's region test)
+    bary = closest_point_on_triangle(plane, corner[:, 0], corner[:, 1], corner[:, 2])
+    fallback = (bary.unsqueeze(-1) * corner).sum(1)
     return torch.where(ok.unsqueeze(-1), q, fallback), fl[src] / m.unsqueeze(-1), src
-
-
-def _clamp_to_triangle(points: Tensor, tri: Tensor) -> Tensor:
-    """Points on their triangles' planes moved into the triangles: negative barycentrics clipped, the rest rescaled."""
-    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points - tri[:, 0]
-    d11, d12, d22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
-    d1, d2 = (d * e1).sum(-1), (d * e2).sum(-1)
-    det = (d11 * d22 - d12 * d12).clamp_min(1e-30)
-    b1, b2 = (d22 * d1 - d12 * d2) / det, (d11 * d2 - d12 * d1) / det
-    bary = torch.stack([1.0 - b1 - b2, b1, b2], dim=-1).clamp_min(0.0)
-    bary = bary / bary.sum(-1, keepdim=True).clamp_min(1e-30)
-    return (bary.unsqueeze(-1) * tri).sum(1)
 
 
 def _ndc(points: Tensor, view_proj: Tensor) -> Tensor:

@@ -42,6 +42,7 @@ bounded even for a triangle covering the whole image). Inside candidates are dep
 from __future__ import annotations
 
 import functools
+import math
 import numbers
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -51,7 +52,7 @@ from torch import Tensor
 
 from torchsss._checks import is_tracing
 
-__all__ = ["Raster", "depth_peel", "interpolate", "rasterize", "rasterize_uv"]
+__all__ = ["Raster", "depth_peel", "interpolate", "rasterize", "rasterize_depth", "rasterize_uv"]
 
 _W_EPS = 1e-6
 _KEY_EMPTY = torch.iinfo(torch.int64).max
@@ -413,6 +414,47 @@ def rasterize(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], *, c
     with torch.no_grad():
         zbuf = _zbuffer(clip.detach(), faces, height, width, cull_backfaces, max_candidates, cdt)
     return _raster_from_zbuf(clip, faces, zbuf, height, width, cdt)
+
+
+def rasterize_depth(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], *, cull_backfaces: bool = False,
+                    max_candidates: int = 2**22) -> Tensor:
+    """The nearest NDC depth at every pixel centre, read from the z-buffer itself (no barycentrics resolved).
+
+    The depth pass of :func:`rasterize` alone, for depth maps (shadow maps): the same coverage, clipping and
+    depth test, so a pixel is covered exactly where :func:`rasterize`'s ``mask`` is, by the same face. The depth
+    is the winner's NDC :math:`z` as the depth test quantised it (31 bits over :math:`[-1, 1]`), returned at the
+    centre of its quantisation step: within :math:`2^{-31}` of the exact value (:func:`rasterize`'s ``depth``
+    differs from it by that plus the rounding of the coverage pass's plane equation). Not differentiable.
+
+    Args:
+        clip_pos: :math:`(V, 4)` or :math:`(B, V, 4)` clip-space vertex positions, float32 or float64, finite.
+        faces: :math:`(F, 3)` integer vertex indices.
+        resolution: ``(H, W)``.
+        cull_backfaces: as :func:`rasterize`.
+        max_candidates: as :func:`rasterize`.
+
+    Returns:
+        :math:`(B, 1, H, W)` NDC :math:`z` in ``clip_pos``'s dtype, ``+inf`` where no face covers the centre.
+
+    Raises:
+        TypeError, ValueError: as :func:`rasterize`.
+
+    Examples:
+        >>> clip = torch.tensor([[-1.0, -1.0, 0.5, 1.0], [3.0, -1.0, 0.5, 1.0], [-1.0, 3.0, 0.5, 1.0]])
+        >>> rasterize_depth(clip, torch.tensor([[0, 1, 2]]), (2, 2))[0, 0].tolist()
+        [[0.5, 0.5], [0.5, 0.5]]
+    """
+    clip = _check_clip(clip_pos)
+    faces = _check_faces(faces, clip.shape[1]).to(clip.device)
+    height, width = _check_resolution(resolution)
+    max_candidates = _check_max_candidates(max_candidates)
+    cdt = torch.float64 if clip.dtype == torch.float64 else torch.float32
+    with torch.no_grad():
+        zbuf = _zbuffer(clip.detach(), faces, height, width, cull_backfaces, max_candidates, cdt)
+        covered = zbuf < _KEY_LIMIT
+        ndc = ((zbuf >> 32).to(torch.float64) + 0.5) / _DEPTH_SCALE - 1.0
+        depth = torch.where(covered, ndc, torch.full_like(ndc, math.inf)).to(clip.dtype)
+    return depth.view(clip.shape[0], 1, height, width)
 
 
 def depth_peel(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], max_layers: int, *,

@@ -26,7 +26,7 @@ from torchsss._checks import check_shape, check_tensor
 from torchsss.geometry.camera import Camera, transform_points
 from torchsss.geometry.lights import DirectionalLight, Light, PointLight, SpotLight
 from torchsss.geometry.mesh import Mesh
-from torchsss.geometry.raster import interpolate, rasterize
+from torchsss.geometry.raster import rasterize_depth
 
 __all__ = ["ShadowMap", "bounding_sphere", "build_shadow_map", "light_camera", "shadow_visibility"]
 
@@ -214,11 +214,14 @@ def build_shadow_map(mesh: Mesh, light: Light, resolution: int = 1024) -> Shadow
     dtype, device = mesh.vertices.dtype, mesh.vertices.device
     view = cam.view_matrix(dtype=dtype, device=device)
     vp = cam.view_proj(dtype=dtype, device=device)
-    clip = transform_points(mesh.vertices, vp)
-    raster = rasterize(clip, mesh.faces, (resolution, resolution))
-    view_depth = -transform_points(mesh.vertices, view)[..., 2:3]
-    depth = interpolate(view_depth, raster, mesh.faces)
-    depth = torch.where(raster.mask, depth, torch.full_like(depth, math.inf))
+    clip = transform_points(mesh.vertices.detach(), vp)
+    # the depth pass alone (no barycentrics): NDC z back to the distance along the axis through the projection,
+    # z_ndc = (a z + b) / (c z + e) with z = -d (perspective: c = -1, e = 0; orthographic: c = 0, e = 1)
+    ndc = rasterize_depth(clip, mesh.faces, (resolution, resolution)).to(torch.float64)
+    proj = cam.projection_matrix(dtype=torch.float64, device=device)
+    a, b, c, e = proj[2, 2], proj[2, 3], proj[3, 2], proj[3, 3]
+    z = (b - ndc * e) / (ndc * c - a)
+    depth = torch.where(ndc.isfinite(), -z, torch.full_like(ndc, math.inf)).to(dtype)
     if cam.projection == "orthographic":
         texel = 2.0 * cam.ortho_half_height / resolution
     else:

@@ -554,6 +554,18 @@ class GlobalResponse(nn.Module):
         self.register_buffer("dual", weights.dual.reshape(1, 1, -1).clone(), persistent=False)
         self.register_buffer("bary", weights.bary.clone(), persistent=False)
         self.register_buffer("valid", valid.to(weights.bary.dtype), persistent=False)
+        # the texels that carry anything, for the per-frame gathers and scatters outside tracing (the traced and
+        # exported graph keeps the whole-image form): texels with a dual weight (vertex_irradiance) and valid
+        # texels (reconstruct); int32 vertex ids, (3, T)
+        ids3 = weights.vertex_ids.reshape(3, -1)
+        gather = self.valid.reshape(-1).nonzero().squeeze(1)
+        scatter = (weights.dual.reshape(3, -1) != 0).any(0).nonzero().squeeze(1)
+        self.register_buffer("_gather_texels", gather, persistent=False)
+        self.register_buffer("_gather_ids", ids3.index_select(1, gather).to(torch.int32), persistent=False)
+        self.register_buffer("_gather_bary", weights.bary.reshape(3, -1).index_select(1, gather), persistent=False)
+        self.register_buffer("_scatter_texels", scatter, persistent=False)
+        self.register_buffer("_scatter_ids", ids3.index_select(1, scatter).reshape(-1), persistent=False)
+        self.register_buffer("_scatter_dual", weights.dual.reshape(3, -1).index_select(1, scatter), persistent=False)
         dist = throughput.distance.clone() if copy else throughput.distance
         vertex_md = None
         if distance_scale is not None:
@@ -677,8 +689,13 @@ class GlobalResponse(nn.Module):
     def vertex_irradiance(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` -> :math:`(B, N, C)` vertex irradiance :math:`E^g` (Lensch eq. 10), scatter_add."""
         b, c = irradiance.shape[:2]
-        src = (irradiance.reshape(b, c, 1, -1) * self.dual.reshape(1, 1, 3, -1)).reshape(b, c, -1)
-        idx = self.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
+        if not is_tracing():  # only the texels with a dual weight: (B, C, T) gathered, (B, C, 3 T) added
+            e = irradiance.reshape(b, c, -1).index_select(2, self._scatter_texels)
+            src = (e.unsqueeze(2) * self._scatter_dual).reshape(b, c, -1)
+            idx = self._scatter_ids.reshape(1, 1, -1).expand(b, c, -1)
+        else:
+            src = (irradiance.reshape(b, c, 1, -1) * self.dual.reshape(1, 1, 3, -1)).reshape(b, c, -1)
+            idx = self.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
         out = torch.zeros(b, c, self.num_vertices, dtype=src.dtype, device=src.device)
         return out.scatter_add(2, idx, src).transpose(1, 2)
 
@@ -813,6 +830,11 @@ class GlobalResponse(nn.Module):
         """:math:`(B, N, C)` vertex values -> :math:`(B, C, H, W)` atlas by barycentric interpolation."""
         b, _, c = vertex_values.shape
         h, w = self.bary.shape[-2:]
+        if not is_tracing():  # only the valid texels, scattered into the image
+            vals = vertex_values.index_select(1, self._gather_ids.reshape(-1)).reshape(b, 3, -1, c)
+            texel = (vals * self._gather_bary.unsqueeze(-1)).sum(1).transpose(1, 2)  # (B, C, T)
+            out = texel.new_zeros(b, c, h * w).index_copy(2, self._gather_texels, texel)
+            return out.view(b, c, h, w)
         idx = self.vertex_ids.reshape(1, -1, 1).expand(b, -1, c)
         vals = torch.gather(vertex_values, 1, idx)  # (B, 3*H*W, C)
         vals = vals.transpose(1, 2).reshape(b, c, 3, h, w)
