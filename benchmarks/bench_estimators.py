@@ -49,6 +49,7 @@ def run(scenes, samples, seeds: int, resolution: int) -> list[dict]:
         for method in ("icdf", "hybrid"):
             t0 = time.perf_counter()
             r = build_scene(scene, method, samples=samples[0])
+            r.reuse_lights = False  # every frame relit, as a frame with new lights
             setup = time.perf_counter() - t0
             r.render(scene.lights, scene.camera)  # warm-up (compile, caches)
             for n in samples:

@@ -74,6 +74,7 @@ scene = load_scene(default_scene_path())
 res = int(sys.argv[1])
 t0 = time.perf_counter()
 renderer = build_scene(scene, "lensch", atlas_resolution=res)
+renderer.reuse_lights = False  # every frame relit (the same lights would reuse the radiosity atlas)
 t1 = time.perf_counter()
 after_build = rss()  # what the built renderer holds, before any frame
 frames = []

@@ -71,6 +71,7 @@ def main() -> None:
         scene = dataclasses.replace(scene0, camera=dataclasses.replace(scene0.camera, width=res, height=res))
         for method in args.methods:
             renderer = build_scene(scene, method)
+            renderer.reuse_lights = False  # every frame relit: its checks run on every frame
             frames = 1 if method == "reference" and not args.quick else args.frames
             renderer.render(scene.lights, scene.camera)  # warm (first-call costs out of the comparison)
             on, off = [], []

@@ -23,6 +23,7 @@ import torch
 from tqdm import tqdm
 
 from torchsss._json import jsonable
+from torchsss.geometry.lensch import THROUGHPUT_THRESHOLD
 from torchsss.io import auto_exposure, key_exposure, tonemap, write_exr, write_png
 from torchsss.physics import (
     chang_rp,
@@ -315,7 +316,7 @@ KNOB_FLAGS: dict[str, tuple[str, frozenset[str], object]] = {
     "eps": ("eps", frozenset({"reference", "splat"}), 0.01),
     "atlas_resolution": ("atlas_resolution", frozenset({"lensch", "icdf", "hybrid"}), 512),
     "kernel_size": ("kernel_size", frozenset({"lensch"}), None),
-    "threshold": ("threshold", frozenset({"lensch"}), 1e-5),
+    "threshold": ("threshold", frozenset({"lensch"}), THROUGHPUT_THRESHOLD),
     "blend": ("blend", frozenset({"lensch"}), None),
     "samples": ("samples", frozenset({"icdf", "hybrid"}), 4096),
     "seed": ("seed", frozenset({"icdf", "hybrid"}), 0),
@@ -336,7 +337,8 @@ def _knob_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kernel-size", type=int, default=None,
                    help="lensch: local kernel size k (odd); default: planned from the vertex spacing (5-11)")
     p.add_argument("--threshold", type=float, default=None,
-                   help="lensch: throughput threshold relative to the largest entry (default 1e-5)")
+                   help="lensch: throughput threshold relative to the largest self throughput (default "
+                        f"{THROUGHPUT_THRESHOLD:g})")
     p.add_argument("--blend", choices=["auto", "on", "off"], default=None,
                    help="lensch: the local/global blending of §5.4 (auto: planned from the vertex spacing)")
     p.add_argument("--no-blend", action="store_true", help="lensch: same as --blend off")

@@ -258,8 +258,10 @@ class IcdfRenderer(Renderer):
         gbuf = camera_gbuffer(mesh, camera)
         dtype, device = mesh.vertices.dtype, mesh.vertices.device
         t0 = time.perf_counter()
-        e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta,
-                             shadow_resolution=k["shadow_resolution"]).to(dtype)
+        e, reused = self._per_lights(  # depends on the lights and eta alone: kept while they stay
+            "irradiance_atlas", lights,
+            lambda: irradiance_atlas(self.source_mesh, self.atlas, lights, eta,
+                                     shadow_resolution=k["shadow_resolution"]).to(dtype), (k["shadow_resolution"],))
         t1 = time.perf_counter()
         u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
         mask = gbuf.mask[0, 0]
@@ -299,7 +301,8 @@ class IcdfRenderer(Renderer):
         stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=time.perf_counter() - t2,
                      atlas_resolution=self.atlas.resolution, samples=k["samples"],
                      receivers=int(coarse.evaluate.numel() + exact.numel()),
-                     interpolated=int(coarse.fill.numel() - exact.numel()), sobol=k["sobol"], seed=k["seed"])
+                     interpolated=int(coarse.fill.numel() - exact.numel()), sobol=k["sobol"], seed=k["seed"],
+                     relit=not reused)
         if self.hybrid:
             stats["local_term"] = local_used
             if plan is not None:

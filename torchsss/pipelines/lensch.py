@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from torchsss.geometry.atlas import Atlas, build_atlas
 from torchsss.geometry.atlas_frame import irradiance_atlas
@@ -23,6 +23,7 @@ from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
 from torchsss.geometry.lensch import (
     MAX_THROUGHPUT_ENTRIES,
+    THROUGHPUT_THRESHOLD,
     blending_weights,
     build_dense_throughput,
     build_throughput,
@@ -58,7 +59,7 @@ class LenschScene:
 
 
 def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int = 512, kernel_size: int | None = None,
-                 threshold: float = 1e-5, relative: bool = True, blend: bool | None = None,
+                 threshold: float = THROUGHPUT_THRESHOLD, relative: bool = True, blend: bool | None = None,
                  max_entries: int | None = MAX_THROUGHPUT_ENTRIES, progress: bool = False,
                  detail: bool = True, layout: str = "auto") -> LenschScene:
     """Precompute everything the per-frame Lensch module needs (see the module docstring).
@@ -175,7 +176,8 @@ class LenschRenderer(Renderer):
     """
 
     method = "lensch"
-    defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=1e-5, relative=True,
+    defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=THROUGHPUT_THRESHOLD,
+                                    relative=True,
                                     blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
                                     max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None, detail=True,
                                     layout="auto")
@@ -205,10 +207,16 @@ class LenschRenderer(Renderer):
         k, mesh, eta = self.knobs, self.mesh, self.eta
         gbuf = camera_gbuffer(mesh, camera)
         t0 = time.perf_counter()
-        e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"])
-        t1 = time.perf_counter()
-        b_atlas = self.module(e)
+        times = {}
+
+        def radiosity_atlas() -> Tensor:  # depends on the lights and the material alone: kept while they stay
+            e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"])
+            times["t1"] = time.perf_counter()
+            return self.module(e)
+
+        b_atlas, reused = self._per_lights("radiosity_atlas", lights, radiosity_atlas, (k["shadow_resolution"],))
         t2 = time.perf_counter()
+        t1 = times.get("t1", t0)
         mask = gbuf.mask
         b = self.atlas.sample(b_atlas, self.view.uv(camera, gbuf.position, mask)) * mask
         cos_o = view_cosine(gbuf)
@@ -218,7 +226,7 @@ class LenschRenderer(Renderer):
         stats = dict(self.built.stats)
         stats.update(t_irradiance_s=t1 - t0, t_module_s=t2 - t1, t_image_s=time.perf_counter() - t2,
                      atlas_resolution=self.atlas.resolution, kernel_size=k["kernel_size"],
-                     threshold=k["threshold"], blend=k["blend"])
+                     threshold=k["threshold"], blend=k["blend"], relit=not reused)
         return RenderResult(radiance, b, mask, stats)
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -26,8 +26,9 @@ from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.gbuffer import camera_gbuffer, view_cosine
-from torchsss.geometry.lights import Light
+from torchsss.geometry.lights import DirectionalLight, Light, PointLight, SpotLight
 from torchsss.geometry.mesh import Mesh
+from torchsss.modules.cache import material_key
 from torchsss.modules.material import material_module
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
@@ -152,6 +153,10 @@ class Renderer:
     defaults: ClassVar[dict] = {}
     #: the Fresnel model of the exit radiance (the reference's ``fresnel`` knob sets its own).
     fresnel: str = "exact"
+    #: keep what depends on the lights and the material alone for the next frame with the same lights
+    #: (:meth:`_per_lights`: a frame whose camera alone moved skips it); False recomputes it every frame (benchmarks
+    #: that time relit frames by rendering the same lights again).
+    reuse_lights: bool = True
 
     def __init__(self, mesh: Mesh, material: Material | str | nn.Module | None, *, dtype: torch.dtype = torch.float32,
                  differentiable: bool = False, progress: bool = False, **knobs) -> None:
@@ -204,6 +209,37 @@ class Renderer:
 
     def _build(self) -> None:
         """The setup (subclasses)."""
+
+    def _per_lights(self, name: str, lights: Sequence[Light], compute: Callable[[], Tensor],
+                    extra: tuple = ()) -> tuple[Tensor, bool]:
+        """``compute()``, kept for the last lights it was computed for: ``(value, reused)``.
+
+        For what depends on the lights, the material and the build alone (the atlas methods' irradiance atlas,
+        Lensch's radiosity atlas), so that a frame whose camera alone moved skips it. Reused only for the same
+        point, spot and directional lights (equal values), the same material (:func:`material_key`: its
+        parameters' storage and versions, so an in-place edit or an optimiser step counts as a change), the same
+        ``extra`` (knobs the value depends on), and never while autograd records (there ``material_key`` is None).
+        """
+        if not self.reuse_lights or \
+                not all(isinstance(light, (PointLight, DirectionalLight, SpotLight)) for light in lights):
+            self.__dict__.pop("_lights_cache", None)
+            return compute(), False
+        mat = () if self.material is None else material_key(self.material)
+        if mat is None:
+            return compute(), False
+        try:
+            key = (tuple(lights), mat, extra)
+            hash(key)
+        except TypeError:  # a light given with list-valued fields: not reused
+            return compute(), False
+        cache = self.__dict__.setdefault("_lights_cache", {})
+        hit = cache.get(name)
+        if hit is not None and hit[0] == key:
+            return hit[1], True
+        cache.pop(name, None)  # the old value is released before the new one is computed
+        value = compute()
+        cache[name] = (key, value)
+        return value, False
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         raise NotImplementedError
