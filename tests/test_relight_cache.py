@@ -28,7 +28,8 @@ def _fresh(renderer, lights, camera):
 
 
 @pytest.mark.parametrize(("method", "knobs"), [("lensch", {"atlas_resolution": 64, "blend": False}),
-                                               ("icdf", {"atlas_resolution": 64, "samples": 256})])
+                                               ("icdf", {"atlas_resolution": 64, "samples": 256}),
+                                               ("splat", {"eps": 0.03})])
 def test_camera_moves_reuse_lights_and_material_changes_do_not(mesh, method, knobs):
     r = build(method, mesh, "skin1", **knobs)
     first = r.render(LIGHTS, CAM_A)
@@ -64,3 +65,16 @@ def test_nothing_is_reused_while_gradients_are_recorded(mesh):
     with torch.no_grad():  # outside autograd the same renderer reuses
         r.render(LIGHTS, CAM_A)
         assert r.render(LIGHTS, CAM_B).stats["relit"] is False
+
+
+def test_a_light_holding_a_tensor_is_never_reused(mesh):
+    """A tensor intensity can change in place (a finite-difference step, an optimiser): such lights relight."""
+    r = build("lensch", mesh, "skin1", atlas_resolution=64, blend=False)
+    intensity = torch.tensor([3e3, 3e3, 3e3])
+    lights = [PointLight((30.0, 20.0, 40.0), intensity)]
+    with torch.no_grad():
+        a = r.render(lights, CAM_A)
+        intensity.mul_(2.0)
+        b = r.render(lights, CAM_A)
+    assert a.stats["relit"] is True and b.stats["relit"] is True
+    torch.testing.assert_close(b.radiance, 2.0 * a.radiance)

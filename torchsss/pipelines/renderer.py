@@ -56,6 +56,18 @@ class RenderResult:
     stats: dict = field(default_factory=dict)
 
 
+def _plain_light(light: object) -> bool:
+    """A point, spot or directional light whose fields hold numbers only (values that cannot change in place)."""
+    if not isinstance(light, (PointLight, DirectionalLight, SpotLight)):
+        return False
+    for f in dataclasses.fields(light):
+        value = getattr(light, f.name)
+        items = value if isinstance(value, (tuple, list)) else (value,)
+        if not all(isinstance(x, (int, float, str, bool)) or x is None for x in items):
+            return False
+    return True
+
+
 def supersample_camera(camera: Camera, spp: object) -> tuple[Camera, int]:
     """The camera on a :math:`\\sqrt{spp}`-times finer pixel grid (same view) and the factor :math:`s`.
 
@@ -210,18 +222,19 @@ class Renderer:
     def _build(self) -> None:
         """The setup (subclasses)."""
 
-    def _per_lights(self, name: str, lights: Sequence[Light], compute: Callable[[], Tensor],
-                    extra: tuple = ()) -> tuple[Tensor, bool]:
+    def _per_lights(self, name: str, lights: Sequence[Light], compute: Callable[[], object],
+                    extra: tuple = ()) -> tuple[object, bool]:
         """``compute()``, kept for the last lights it was computed for: ``(value, reused)``.
 
         For what depends on the lights, the material and the build alone (the atlas methods' irradiance atlas,
-        Lensch's radiosity atlas), so that a frame whose camera alone moved skips it. Reused only for the same
-        point, spot and directional lights (equal values), the same material (:func:`material_key`: its
-        parameters' storage and versions, so an in-place edit or an optimiser step counts as a change), the same
-        ``extra`` (knobs the value depends on), and never while autograd records (there ``material_key`` is None).
+        Lensch's radiosity atlas, the splats of the light views), so that a frame whose camera alone moved skips
+        it. Reused only for the same point, spot and directional lights given by numbers (equal values; a light
+        holding a tensor, e.g. a differentiable intensity, can change in place and is never reused), the same
+        material (:func:`material_key`: its parameters' storage and versions, so an in-place edit or an optimiser
+        step counts as a change), the same ``extra`` (knobs the value depends on), and never while autograd records
+        (there ``material_key`` is None).
         """
-        if not self.reuse_lights or \
-                not all(isinstance(light, (PointLight, DirectionalLight, SpotLight)) for light in lights):
+        if not self.reuse_lights or not all(_plain_light(light) for light in lights):
             self.__dict__.pop("_lights_cache", None)
             return compute(), False
         mat = () if self.material is None else material_key(self.material)

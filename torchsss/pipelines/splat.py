@@ -211,8 +211,11 @@ class SplatRenderer(Renderer):
         view_proj = camera.view_proj(dtype=dtype, device=mesh.vertices.device)
         b = torch.zeros(1, 3, camera.height, camera.width, dtype=dtype, device=mesh.vertices.device)
         splats = 0
-        for light in lights:
-            pos, flux, fid, bary = _light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"])
+        sources, reused = self._per_lights(  # the splats depend on the lights and eta alone: kept while they stay
+            "light_sources", lights,
+            lambda: [_light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"]) for light in lights],
+            (n, k["peel_layers"], k["max_stretch"]))
+        for pos, flux, fid, bary in sources:
             splats += int(pos.shape[0])
             b = b + self.module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
                                 src_distance_scale=at_sources(self.md, mesh, fid, bary),
@@ -221,7 +224,8 @@ class SplatRenderer(Renderer):
         radiance = exit_radiance(b, cos_o, eta) * gbuf.mask
         if k["specular"]:
             radiance = radiance + shadow_mapped_specular(mesh, gbuf, lights, eta, roughness=k["roughness"])
-        stats = {"grid": n, "splats": splats, "r_max_mm": float(self.module.r_max), "eps": k["eps"]}
+        stats = {"grid": n, "splats": splats, "r_max_mm": float(self.module.r_max), "eps": k["eps"],
+                 "relit": not reused}
         return RenderResult(radiance, b, gbuf.mask, stats)
 
 
