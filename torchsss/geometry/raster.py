@@ -406,6 +406,14 @@ def rasterize(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], *, c
         >>> r.face_id[0, 0].tolist(), bool(r.mask.all()), r.bary.shape
         ([[0, 0, 0], [0, 0, 0]], True, torch.Size([1, 3, 2, 3]))
     """
+    clip, faces, height, width, cdt, zbuf = _checked_zbuffer(clip_pos, faces, resolution, cull_backfaces,
+                                                             max_candidates)
+    return _raster_from_zbuf(clip, faces, zbuf, height, width, cdt)
+
+
+def _checked_zbuffer(clip_pos: object, faces: object, resolution: object, cull_backfaces: bool,
+                     max_candidates: object) -> tuple[Tensor, Tensor, int, int, torch.dtype, Tensor]:
+    """The arguments of :func:`rasterize` checked, and the depth pass's keys: ``(clip, faces, H, W, cdt, zbuf)``."""
     clip = _check_clip(clip_pos)
     faces = _check_faces(faces, clip.shape[1]).to(clip.device)
     height, width = _check_resolution(resolution)
@@ -413,7 +421,7 @@ def rasterize(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], *, c
     cdt = torch.float64 if clip.dtype == torch.float64 else torch.float32
     with torch.no_grad():
         zbuf = _zbuffer(clip.detach(), faces, height, width, cull_backfaces, max_candidates, cdt)
-    return _raster_from_zbuf(clip, faces, zbuf, height, width, cdt)
+    return clip, faces, height, width, cdt, zbuf
 
 
 def rasterize_depth(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int], *, cull_backfaces: bool = False,
@@ -444,13 +452,8 @@ def rasterize_depth(clip_pos: Tensor, faces: Tensor, resolution: tuple[int, int]
         >>> rasterize_depth(clip, torch.tensor([[0, 1, 2]]), (2, 2))[0, 0].tolist()
         [[0.5, 0.5], [0.5, 0.5]]
     """
-    clip = _check_clip(clip_pos)
-    faces = _check_faces(faces, clip.shape[1]).to(clip.device)
-    height, width = _check_resolution(resolution)
-    max_candidates = _check_max_candidates(max_candidates)
-    cdt = torch.float64 if clip.dtype == torch.float64 else torch.float32
+    clip, _, height, width, _, zbuf = _checked_zbuffer(clip_pos, faces, resolution, cull_backfaces, max_candidates)
     with torch.no_grad():
-        zbuf = _zbuffer(clip.detach(), faces, height, width, cull_backfaces, max_candidates, cdt)
         covered = zbuf < _KEY_LIMIT
         ndc = ((zbuf >> 32).to(torch.float64) + 0.5) / _DEPTH_SCALE - 1.0
         depth = torch.where(covered, ndc, torch.full_like(ndc, math.inf)).to(clip.dtype)
