@@ -11,7 +11,10 @@ Part (a), scenes: the example scenes of the four shared meshes (spot: the packag
   the tolerance, its candidate with the smallest predicted error): setup (mesh loading and decimation included),
   the cold first frame, the median of ``--frames`` - 1 warm frames over a light orbit, the relative RMSE and max
   error of the first frame against the reference's first frame over the pixels both cover, the peak resident
-  memory the build and frames added, and the warm frame's speed-up over the reference's warm frame.
+  memory the build and frames added, and the warm frame's speed-up over the reference's warm frame; then
+  ``--camera-frames`` frames with the camera orbiting under the scene's lights (``camera_frame_s``: the median of
+  all but the first, which relights; a frame whose camera alone moved reuses what depends on the lights,
+  ``Renderer.reuse_lights``) and their speed-up over the reference's warm frame (the reference keeps nothing).
 
 Part (b), ops (``--ops``), each at 1 and 2 threads in the same process (CPU): the reference integrator's pairs
 per second, eager chain against the fused kernel (M = 4096 receivers x N = 16384 sources, marble, float32);
@@ -69,7 +72,8 @@ METHODS = ("splat", "icdf", "hybrid", "lensch")
 
 MD_COLUMNS = {
     "scene": ["device", "scene", "faces", "method", "knobs", "decimate", "setup_s", "cold_frame_s", "frame_s",
-              "speedup_vs_reference", "rel_rmse", "max_error", "peak_mib", "note"],
+              "speedup_vs_reference", "camera_frame_s", "camera_speedup", "rel_rmse", "max_error", "peak_mib",
+              "note"],
     "reference_pairs": ["device", "threads", "m", "n", "eager_mpairs_s", "fused_mpairs_s", "speedup",
                         "max_rel_diff"],
     "sv_conv2d": ["device", "threads", "size", "k", "fast_ms", "compiled_ms", "reference_ms", "speedup_vs_reference",
@@ -105,8 +109,32 @@ def _planned(scene: Scene, method: str, tolerance: float, frames: int) -> tuple[
     return plan_method(scene, method, tolerance, frames)
 
 
-def _frames(renderer, scene: Scene, frames: int, device: str) -> tuple:
-    """Render the first frame (cold) and ``frames`` - 1 orbit frames (warm); return (first, cold_s, warm median)."""
+def orbit_camera(camera, frame: int, frames: int, centre) -> object:
+    """The camera of frame ``frame`` of ``frames``: eye and target turned by 2 pi frame / frames about its up axis.
+
+    The axis runs through ``centre``; a camera orbit under fixed lights.
+    """
+    axis = torch.tensor(camera.up, dtype=torch.float64)
+    axis = axis / axis.norm()
+    a = 2.0 * math.pi * frame / frames
+    c = torch.tensor(centre, dtype=torch.float64)
+
+    def turn(p):
+        v = torch.tensor(p, dtype=torch.float64) - c  # Rodrigues' rotation about the axis through the centre
+        v = v * math.cos(a) + torch.linalg.cross(axis, v) * math.sin(a) + axis * (axis @ v) * (1.0 - math.cos(a))
+        return tuple(float(x) for x in v + c)
+
+    return dataclasses.replace(camera, eye=turn(camera.eye), target=turn(camera.target))
+
+
+def _frames(renderer, scene: Scene, frames: int, device: str, camera_frames: int = 0) -> tuple:
+    """The first frame (cold), ``frames`` - 1 light-orbit frames (warm), ``camera_frames`` camera-orbit frames.
+
+    Returns (first, cold_s, warm median, camera median); the camera orbit runs under the scene's own lights.
+
+    The camera orbit's first frame relights (the lights changed back from the light orbit's); the median is over
+    the others, whose camera alone moved (a renderer keeps what depends on the lights alone, ``reuse_lights``).
+    """
     mesh = renderer.mesh
     centre = tuple(float(v) for v in (mesh.vertices.amax(0) + mesh.vertices.amin(0)) / 2)
     first, cold = _timed(lambda: renderer.render(list(scene.lights), scene.camera), device)
@@ -115,7 +143,13 @@ def _frames(renderer, scene: Scene, frames: int, device: str) -> tuple:
         lights = orbit_lights(scene.lights, i, frames, centre=centre, axis=scene.camera.up)
         _, t = _timed(lambda lights=lights: renderer.render(lights, scene.camera), device)
         warm.append(t)
-    return first, cold, statistics.median(warm) if warm else cold
+    moved = []
+    for i in range(1, camera_frames + 1):
+        cam = orbit_camera(scene.camera, i, 4 * max(camera_frames, 1), centre)
+        _, t = _timed(lambda cam=cam: renderer.render(list(scene.lights), cam), device)
+        moved.append(t)
+    camera = statistics.median(moved[1:]) if len(moved) > 1 else None
+    return first, cold, statistics.median(warm) if warm else cold, camera
 
 
 def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
@@ -137,7 +171,7 @@ def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
         mesh = load(None)
         ref_r = build("reference", mesh, scene.material)
         setup = time.perf_counter() - t0
-        ref, cold, warm = _frames(ref_r, scene, 2 if args.reference_frames > 1 else 1, device)
+        ref, cold, warm, _ = _frames(ref_r, scene, 2 if args.reference_frames > 1 else 1, device)
     faces = mesh.num_faces
     pairs = ref.stats["pairs"]
     rec = {"benchmark": "scene", "device": device, "scene": name, "faces": faces, "resolution": res,
@@ -165,7 +199,7 @@ def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
                 r = build(method, mesh, scene.material, **knobs)
                 _sync(device)
                 setup = time.perf_counter() - t0
-                out, cold, warm = _frames(r, scene, args.frames, device)
+                out, cold, warm, camera = _frames(r, scene, args.frames, device, args.camera_frames)
         except (ValueError, RuntimeError) as err:
             records.append({"benchmark": "scene", "device": device, "scene": name, "faces": faces,
                             "method": method, "knobs": json.dumps(knobs), "decimate": decimate,
@@ -178,7 +212,8 @@ def bench_scene(name: str, path: Path | Scene, args, log=print) -> list[dict]:
         rec = {"benchmark": "scene", "device": device, "scene": name, "faces": faces, "resolution": res,
                "method": method, "knobs": json.dumps(knobs, sort_keys=True), "decimate": decimate,
                "setup_s": setup, "cold_frame_s": cold, "frame_s": warm,
-               "speedup_vs_reference": ref_frame / warm if warm > 0 else math.inf, **err,
+               "speedup_vs_reference": ref_frame / warm if warm > 0 else math.inf,
+               "camera_frame_s": camera, "camera_speedup": None if not camera else ref_frame / camera, **err,
                "peak_mib": pm.peak_mib, "frames": args.frames, "note": note}
         log(f"  {name} {method} {knobs} dec {decimate}: setup {setup:.1f} s, cold {cold:.3f} s, warm {warm:.3f} s "
             f"({rec['speedup_vs_reference']:.0f}x the reference), rel RMSE {err['rel_rmse']:.2%}, "
@@ -267,6 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tolerance", type=float, default=0.03)
     parser.add_argument("--frames", type=int, default=4, help="frames per method: 1 cold + the warm orbit")
     parser.add_argument("--reference-frames", type=int, default=2, help="1: the cold frame only (big meshes)")
+    parser.add_argument("--camera-frames", type=int, default=3,
+                        help="frames per method with the camera orbiting under the scene's lights (0: none)")
     parser.add_argument("--scenes", nargs="*", default=None, choices=sorted(SCENES))
     parser.add_argument("--methods", nargs="*", default=None, choices=METHODS)
     parser.add_argument("--skip-ops", action="store_true")
