@@ -858,20 +858,23 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                                    "N planned with the icdf estimator's error" if local_stride < 0 else
                                    "the split is off (the local bound reaches across the object): every source "
                                    "sampled, N planned with the icdf estimator's error")
+            n = 0
             if target > floor:
                 need = 4096.0 * (a / math.sqrt(target * target - floor * floor)) ** (1.0 / power) if a > 0 else 0.0
                 n = int(2 ** math.ceil(math.log2(max(MIN_SAMPLES, need))))
-                if n > 1 << 18:
-                    continue
                 r["samples"] = (f"N = {n}: error ~ hypot({floor:.3g}, {a:.3g} (4096 / N)^{power}) meets "
                                 f"{tolerance:.2%} with margin {MARGINS[method]}")
-            else:  # the floor alone misses: the N at which sampling adds ~12% to it (the most accurate worth having),
-                # the sampling term taken with the method's margin as every planned error is (it held the N of the
-                # back-lit 30 mm marble bunny at 4096, measured 3.9% against 2.5% at 8192)
+            if not 0 < n <= 1 << 18:
+                # the floor alone misses, or more than 2^18 samples would be needed: the N at which sampling adds ~12%
+                # to the floor (the most accurate worth having; a candidate predicted outside the tolerance, which
+                # plan_method falls back to, where the method's default N 4096 measured 7.7% on the shared igea
+                # at 3%), the sampling term taken with the method's margin as every planned error is (it held the N
+                # of the back-lit 30 mm marble bunny at 4096, measured 3.9% against 2.5% at 8192)
                 need = 4096.0 * (MARGINS[method] * a / (0.5 * floor)) ** (1.0 / power) if a > 0 else 0.0
                 n = int(2 ** math.ceil(math.log2(min(max(MIN_SAMPLES, need), float(1 << 16)))))
-                r["samples"] = (f"N = {n}: the floor {floor:.3g} alone exceeds {tolerance:.2%}; sampling kept "
-                                f"below half of it with margin {MARGINS[method]}")
+                r["samples"] = (f"N = {n}: {tolerance:.2%} is out of the estimator's reach (its floor {floor:.3g}, "
+                                f"or more than 2^18 samples); sampling kept below half of the floor with margin "
+                                f"{MARGINS[method]}")
             out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
         elif method == "lensch":
             # 0.6 of the cap from the full mesh's estimate scaled by faces^2 (on the default scene within 1%: 6.30M
