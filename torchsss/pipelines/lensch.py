@@ -177,8 +177,7 @@ class LenschRenderer(Renderer):
 
     method = "lensch"
     defaults: ClassVar[dict] = dict(atlas_resolution=512, kernel_size=None, threshold=THROUGHPUT_THRESHOLD,
-                                    relative=True,
-                                    blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
+                                    relative=True, blend=None, shadow_resolution=1024, specular=False, roughness=0.3,
                                     max_entries=MAX_THROUGHPUT_ENTRIES, source_faces=None, detail=True,
                                     layout="auto")
 
