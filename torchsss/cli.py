@@ -309,19 +309,20 @@ PLANNED_METHODS = ("splat", "icdf", "hybrid", "lensch")
 #: back-lit 15 mm torus and 30 mm bunny where one sample per pixel is 3.4% and 5.0% off (tests/test_subpixel.py)
 DEFAULT_SPP = 16
 
-#: Per-method knob flags of ``render``: argparse dest -> (knob, the methods that take it, default).
-KNOB_FLAGS: dict[str, tuple[str, frozenset[str], object]] = {
-    "spacing": ("spacing_mm", frozenset({"reference"}), None),
-    "shadows": ("shadows", frozenset({"reference"}), "raytrace"),
-    "eps": ("eps", frozenset({"reference", "splat"}), 0.01),
-    "atlas_resolution": ("atlas_resolution", frozenset({"lensch", "icdf", "hybrid"}), 512),
-    "kernel_size": ("kernel_size", frozenset({"lensch"}), None),
-    "threshold": ("threshold", frozenset({"lensch"}), THROUGHPUT_THRESHOLD),
-    "blend": ("blend", frozenset({"lensch"}), None),
-    "samples": ("samples", frozenset({"icdf", "hybrid"}), 4096),
-    "seed": ("seed", frozenset({"icdf", "hybrid"}), 0),
-    "split_c": ("c", frozenset({"hybrid"}), 0.1),
-    "caustic_grid": ("grid", frozenset({"caustics"}), None),
+#: Per-method knob flags of ``render``: argparse dest -> (knob, the methods that take it). An unset flag leaves the
+#: knob to the plan or to the renderer's own default (``Renderer.defaults``, the one home of every default).
+KNOB_FLAGS: dict[str, tuple[str, frozenset[str]]] = {
+    "spacing": ("spacing_mm", frozenset({"reference"})),
+    "shadows": ("shadows", frozenset({"reference"})),
+    "eps": ("eps", frozenset({"reference", "splat"})),
+    "atlas_resolution": ("atlas_resolution", frozenset({"lensch", "icdf", "hybrid"})),
+    "kernel_size": ("kernel_size", frozenset({"lensch"})),
+    "threshold": ("threshold", frozenset({"lensch"})),
+    "blend": ("blend", frozenset({"lensch"})),
+    "samples": ("samples", frozenset({"icdf", "hybrid"})),
+    "seed": ("seed", frozenset({"icdf", "hybrid"})),
+    "split_c": ("c", frozenset({"hybrid"})),
+    "caustic_grid": ("grid", frozenset({"caustics"})),
 }
 
 
@@ -364,7 +365,7 @@ def _explicit_knobs(args: argparse.Namespace) -> dict[str, object]:
 
 
 def method_knobs(method: str, explicit: dict[str, object], planned: dict | None = None) -> dict:
-    """``method``'s knobs: its CLI defaults (or the plan's knobs), overridden by the flags the user gave.
+    """``method``'s knobs: the plan's (or none: the renderer's defaults), overridden by the flags the user gave.
 
     Raises:
         ValueError: a flag that ``method`` does not take (naming the methods that do).
@@ -374,10 +375,7 @@ def method_knobs(method: str, explicit: dict[str, object], planned: dict | None 
         if method not in methods:
             raise ValueError(f"--{dest.replace('_', '-')}: applies to {', '.join(sorted(methods))}, got --method "
                              f"{method}")
-    if planned is not None:
-        knobs = dict(planned)
-    else:
-        knobs = {k: d for dest, (k, methods, d) in KNOB_FLAGS.items() if method in methods and d is not None}
+    knobs = dict(planned) if planned is not None else {}
     knobs.update({KNOB_FLAGS[dest][0]: v for dest, v in explicit.items()})
     return knobs
 
