@@ -503,3 +503,42 @@ def test_xatlas_in_a_forked_child_matches_in_process(monkeypatch):
     assert len(forks) == n  # and these from this process
     assert torch.equal(forked.face_uvs, local.face_uvs)
     assert torch.equal(forked.valid_mask, local.valid_mask)
+
+
+def test_a_stuck_xatlas_child_is_killed_and_forked_again(monkeypatch, tmp_path):
+    """A child stuck inside xatlas' generate (idle, as seen once in CI) is taken as stuck once its CPU time stops
+    growing, killed and forked again; a child stuck every time ends in a RuntimeError, never a hang."""
+    import os
+    import time
+
+    import torchsss.geometry.atlas as atlas_module
+
+    if not hasattr(os, "fork") or not os.path.exists(f"/proc/{os.getpid()}/stat"):
+        pytest.skip("needs os.fork and /proc")
+    mesh = torus(5.0, 1.8, 24, 12)
+    want = build_atlas(mesh, 128)
+    real = atlas_module._xatlas_generate
+    marker = tmp_path / "stuck-once"
+
+    def stuck_once(*args):  # runs in the child: the first child sleeps (no CPU), the next ones generate
+        if not marker.exists():
+            marker.write_text("stuck")
+            time.sleep(3600)
+        return real(*args)
+
+    monkeypatch.setattr(atlas_module, "_XATLAS_STALL_S", 1.0)
+    monkeypatch.setattr(atlas_module, "_xatlas_generate", stuck_once)
+    with pytest.warns(RuntimeWarning, match="stuck"):
+        got = build_atlas(mesh, 128)
+    assert marker.exists()
+    assert torch.equal(got.face_uvs, want.face_uvs)
+
+    def always_stuck(*args):
+        time.sleep(3600)
+
+    monkeypatch.setattr(atlas_module, "_XATLAS_FORKS", 2)
+    monkeypatch.setattr(atlas_module, "_xatlas_generate", always_stuck)
+    t0 = time.monotonic()
+    with pytest.warns(RuntimeWarning, match="stuck"), pytest.raises(RuntimeError, match="stuck 2 times"):
+        build_atlas(mesh, 128)
+    assert time.monotonic() - t0 < 30.0

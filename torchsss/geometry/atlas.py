@@ -61,6 +61,8 @@ from __future__ import annotations
 import numbers
 import os
 import pickle
+import select
+import time
 import warnings
 from dataclasses import dataclass
 from functools import cached_property
@@ -87,6 +89,10 @@ _INSIDE_EPS = 1e-7  # strict-interior margin on barycentrics for the overlap cou
 _CHUNK = 1 << 22  # texel candidates per chunk in the overlap count
 _SHRINK = 0.92  # texels-per-unit factor per packing retry
 _MAX_RETRIES = 16
+#: A forked xatlas child whose CPU time has not grown for this long is stuck (see :func:`_xatlas_run`).
+_XATLAS_STALL_S = 20.0
+#: Forks of one xatlas generation before giving up on a child that keeps getting stuck.
+_XATLAS_FORKS = 3
 _TEXEL_AREAS = ("jacobian", "face")
 _DEGENERATE_UV = 1e-14  # |2 x uv area| below which a face is not extrapolated
 
@@ -400,10 +406,42 @@ def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, paddin
     xatlas' task scheduler can lose the wake-up of a worker thread, and its destructor (``xatlas::Destroy``, when
     the ``Atlas`` is freed) then joins that thread forever: seen as a test run that hung with both processes idle.
     The child sends the charts back through a pipe and leaves with ``os._exit``, which never runs the destructor;
-    where ``os.fork`` is missing (Windows) or ``TORCHSSS_XATLAS_FORK=0``, it runs in this process.
+    a child stuck inside ``generate`` itself is killed and forked again (:func:`_xatlas_fork`), up to
+    :data:`_XATLAS_FORKS` times. Where ``os.fork`` is missing (Windows) or ``TORCHSSS_XATLAS_FORK=0``, it runs in
+    this process.
     """
     if not hasattr(os, "fork") or os.environ.get("TORCHSSS_XATLAS_FORK", "1") == "0":
         return _xatlas_generate(vertices, faces, resolution, padding, texels_per_unit)
+    for attempt in range(_XATLAS_FORKS):
+        result = _xatlas_fork(vertices, faces, resolution, padding, texels_per_unit)
+        if result is not None:
+            return result
+        warnings.warn(f"xatlas: the child process generating the atlas was stuck (no CPU time for "
+                      f"{_XATLAS_STALL_S:g} s); killed it and forked again ({attempt + 1} of {_XATLAS_FORKS})",
+                      RuntimeWarning, stacklevel=3)
+    raise RuntimeError(f"xatlas: the child process generating the atlas got stuck {_XATLAS_FORKS} times; set "
+                       "TORCHSSS_XATLAS_FORK=0 to run it in this process")
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """CPU time (user + system, all threads) of process ``pid`` from ``/proc``; None where there is no ``/proc``."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _xatlas_fork(vertices: np.ndarray, faces: np.ndarray, resolution: int, padding: int,
+                 texels_per_unit: float) -> SimpleNamespace | None:
+    """:func:`_xatlas_generate` in a forked child; None when the child got stuck (it is killed).
+
+    Stuck: xatlas' scheduler lost a worker's wake-up inside ``generate`` (seen once in CI: the child idle at 0 CPU
+    seconds for minutes while the test run waited). A child whose CPU time has not grown for
+    :data:`_XATLAS_STALL_S` seconds while it has sent nothing is taken as stuck; a working one burns CPU. Without
+    ``/proc`` the parent waits as long as it takes.
+    """
     read_fd, write_fd = os.pipe()
     pid = os.fork()
     if pid == 0:  # the child: xatlas and numpy only, then out without destructors
@@ -422,8 +460,25 @@ def _xatlas_run(vertices: np.ndarray, faces: np.ndarray, resolution: int, paddin
         finally:  # no flush: the parent's buffered output must not be written twice
             os._exit(code)
     os.close(write_fd)
-    with os.fdopen(read_fd, "rb") as inp:
-        payload = inp.read()
+    chunks, cpu, since = [], _cpu_seconds(pid), time.monotonic()
+    with os.fdopen(read_fd, "rb", buffering=0) as inp:
+        while True:
+            ready, _, _ = select.select([inp], [], [], 1.0)
+            if ready:
+                data = inp.read(1 << 20)
+                if not data:  # the child closed the pipe: all sent
+                    break
+                chunks.append(data)
+                since = time.monotonic()
+                continue
+            now = _cpu_seconds(pid)
+            if now is None or now != cpu:
+                cpu, since = now, time.monotonic()
+            elif time.monotonic() - since > _XATLAS_STALL_S:
+                os.kill(pid, 9)
+                os.waitpid(pid, 0)
+                return None
+    payload = b"".join(chunks)
     os.waitpid(pid, 0)
     if not payload:
         raise RuntimeError("xatlas: the child process that generates the atlas returned nothing")
