@@ -167,9 +167,16 @@ def test_shared_range_row_path_matches_per_channel_path():
     shared = build_profile_table(prof, rm, 512, "sqrt", shared_range=True)
     assert torch.all(shared.r_max == rm.max())
     r1 = torch.rand(5000, 1, dtype=torch.float64) * rm.max() * 1.1  # includes r beyond the range
-    fast = lookup_profile_table(r1, shared)  # row-gather path
+    fast = lookup_profile_table(r1, shared)  # row-gather path (outside autograd: the in-place form, _lookup_rows)
     general = lookup_profile_table(r1.expand(-1, 3).contiguous(), shared)  # per-channel path, same table
-    assert_close(fast, general, rtol=1e-15, atol=0)
+    assert_close(fast, general, rtol=1e-13, atol=0)  # p^4 for q^2 in the first segment: rounding only
+    with torch.enable_grad():  # the row path's autograd form (masked square root) gives the same values
+        graded = lookup_profile_table(r1.clone().requires_grad_(True), shared)
+    assert_close(fast, graded.detach(), rtol=1e-13, atol=0)
+    tiny = torch.tensor([[0.0], [0.3], [0.99]], dtype=torch.float64) * rm.max() / 511 ** 2  # the first segment
+    with torch.enable_grad():
+        expect = lookup_profile_table(tiny.clone().requires_grad_(True), shared).detach()
+    assert_close(lookup_profile_table(tiny, shared), expect, rtol=1e-13, atol=0)
     assert torch.all(fast[r1[:, 0] > rm.max()] == 0)
     err = profile_table_error(shared, prof)
     assert torch.all(err < 1e-3)

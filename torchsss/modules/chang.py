@@ -59,6 +59,7 @@ from torchsss._checks import (
     skip_value_checks,
 )
 from torchsss.modules.cache import ValueCache, material_key
+from torchsss.modules.material import bulk_profile
 from torchsss.modules.sampling import IcdfSampler
 from torchsss.ops.icdf import MAX_LEVELS
 from torchsss.ops.reference import DEFAULT_MAX_PAIRS, reference_radiosity
@@ -429,9 +430,15 @@ class SurfaceLocal(nn.Module):
         return (num / den.clamp_min(1e-6)).transpose(1, 2)
 
     def pair_weights(self, cols: Tensor, distance: Tensor) -> Tensor:
-        """:math:`(P, C)` :math:`A_s R_d(d) W_l^b(d)` for the current material."""
+        """:math:`(P, C)` :math:`A_s R_d(d) W_l^b(d)` for the current material.
+
+        Outside autograd the profile is evaluated through a table (:func:`~torchsss.modules.material.bulk_profile`).
+        """
         d = distance.unsqueeze(-1)
-        return self.area[cols].unsqueeze(-1).to(d.dtype) * self.material(d) * self.weight(d)
+        profile = self.material
+        if distance.numel() and not (torch.is_grad_enabled() or is_tracing()):
+            profile = bulk_profile(self.material, float(distance.max()), d.dtype, d.device)
+        return self.area[cols].unsqueeze(-1).to(d.dtype) * profile(d) * self.weight(d)
 
     def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor,
                 receivers: int | Tensor, *, cache: bool = True) -> Tensor:

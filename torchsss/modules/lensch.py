@@ -35,6 +35,7 @@ from torchsss.geometry.lensch import (
     _distance,
 )
 from torchsss.modules.cache import ValueCache, material_key
+from torchsss.modules.material import bulk_profile
 from torchsss.ops.sparse import SparsePattern, sparse_apply_t, sparse_pattern
 from torchsss.ops.sv_conv import sv_conv2d_planes
 from torchsss.physics.fresnel import check_fresnel, transmittance
@@ -363,8 +364,9 @@ class LocalResponse(nn.Module):
             return cols.index_select(2, self.slot).reshape(c, k2, self.height, self.width)
         block = max(1, self.block_bytes // (k2 * 4 * self.self_area.element_size()))
         out = None
+        profile = self._bulk_profile()
         for lo in range(0, max(n, 1), block):
-            rows = self._kernel_rows(lo, min(n, lo + block))
+            rows = self._kernel_rows(lo, min(n, lo + block), profile)
             c = rows.shape[0]
             if out is None:
                 out = rows.new_zeros(c, k2, self.height * self.width)
@@ -380,10 +382,30 @@ class LocalResponse(nn.Module):
         p = self.planes()
         return p.reshape(p.shape[0], k, k, self.height, self.width).permute(0, 3, 4, 1, 2).contiguous()
 
-    def _kernel_rows(self, lo: int, hi: int) -> Tensor:
-        """The compact kernels of receivers ``index[lo:hi]``: :math:`(C, hi - lo, k, k)`."""
+    def _bulk_profile(self):
+        """The material for a no-grad evaluation of every tap (:func:`~torchsss.modules.material.bulk_profile`).
+
+        Its range: the largest tap distance (stored taps), or the extent of the receivers, which are every texel a
+        tap can read (derived taps), times the largest distance multiplier.
+        """
+        if torch.is_grad_enabled() or is_tracing() or self.index.numel() == 0:
+            return self.material
+        if self.src_position is None:
+            d_max = float(self.distance.max())
+        else:
+            pos = self.rec_position
+            d_max = float((pos.amax(0) - pos.amin(0)).norm())
+            if self.src_scale is not None:
+                d_max *= float(self.src_scale.max())
+        return bulk_profile(self.material, d_max, self.self_area.dtype, self.index.device)
+
+    def _kernel_rows(self, lo: int, hi: int, profile=None) -> Tensor:
+        """The compact kernels of receivers ``index[lo:hi]``: :math:`(C, hi - lo, k, k)`.
+
+        ``profile``: the material's evaluation to use (:meth:`_bulk_profile`); default the material itself.
+        """
         dist, area = self._taps(lo, hi)
-        k = area.unsqueeze(-1) * self.material(dist.unsqueeze(-1))  # (n, k, k, C)
+        k = area.unsqueeze(-1) * (self.material if profile is None else profile)(dist.unsqueeze(-1))  # (n, k, k, C)
         scale = None if self.self_scale is None else self.self_scale[lo:hi]
         disk = _disk_integral(self.material, self.self_area[lo:hi], scale) if self.self_term == "disk" else None
         if disk is not None:
@@ -447,11 +469,12 @@ class LocalResponse(nn.Module):
         half = torch.zeros(channels, nh, hw, dtype=dtype, device=self.index.device)
         centre = torch.zeros(channels, hw, dtype=dtype, device=self.index.device)
         block = max(1, self.block_bytes // (max(nh, 1) * 4 * self.self_area.element_size()))
+        profile = self._bulk_profile()
         for lo in range(0, n, block):
             hi = min(n, lo + block)
             idx = self.base[lo:hi, None] + offsets  # (m, nh) in the padded maps
             d = _distance(self.rec_position[lo:hi, None, :], self.src_position[:, idx].permute(1, 2, 0))
-            rd = self.material(d.unsqueeze(-1))  # (m, nh, C)
+            rd = profile(d.unsqueeze(-1))  # (m, nh, C)
             rd = torch.where(valid[idx].unsqueeze(-1), rd, torch.zeros_like(rd))
             at = self.index[lo:hi]
             half[:, :, at] = rd.permute(2, 1, 0).to(dtype)
@@ -710,12 +733,14 @@ class GlobalResponse(nn.Module):
         if self.dense:
             return self._dense_values()
         if self.hat_entries is not None:
-            vals = self._blocks(self._moment_rule, self.distance.shape[0])
+            profile = self._bulk_profile(self.distance, self.hat_moments)
+            vals = self._blocks(lambda lo, hi: self._moment_rule(lo, hi, profile), self.distance.shape[0])
             near = self.hat_values(vals.shape[-1], vals.dtype)
             if vals.requires_grad or near.requires_grad or is_tracing():
                 return vals.index_copy(0, self.hat_entries, near)
             return vals.index_copy_(0, self.hat_entries, near)  # in place: no second copy of every value
-        vals = self._blocks(self._sampled, self.distance.shape[0])
+        profile = self._bulk_profile(self.distance)
+        vals = self._blocks(lambda lo, hi: self._sampled(lo, hi, profile), self.distance.shape[0])
         disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
         if disk is None:
             return vals
@@ -727,9 +752,10 @@ class GlobalResponse(nn.Module):
         Outside autograd and tracing in blocks of source rows (``value_block`` pairs, 1M), written into one output.
         """
         n = self.num_vertices
+        profile = self._bulk_profile(self.distance)
 
         def rows(lo: int, hi: int) -> Tensor:
-            f = self.source_area[lo:hi, None, None] * self.material(self.distance[lo:hi].unsqueeze(-1))
+            f = self.source_area[lo:hi, None, None] * profile(self.distance[lo:hi].unsqueeze(-1))
             return torch.where(self.keep[lo:hi].unsqueeze(-1), f, torch.zeros_like(f)).permute(2, 0, 1)
 
         step = max(1, self.value_block // max(n, 1))
@@ -750,17 +776,26 @@ class GlobalResponse(nn.Module):
                 vals = vals.reshape(c, n * n).index_copy(1, flat, disk.transpose(0, 1).to(vals.dtype)).reshape(c, n, n)
         return vals
 
-    def _sampled(self, lo: int, hi: int) -> Tensor:
-        """The entries ``lo:hi`` sampled at the source vertex, :math:`A_i/3\\, R_d(d_{ij})`: :math:`(hi - lo, C)`."""
-        return self.source_area[lo:hi].unsqueeze(-1) * self.material(self.distance[lo:hi].unsqueeze(-1))
+    def _bulk_profile(self, *distances: Tensor):
+        """The material for a no-grad evaluation of ``distances`` (:func:`~torchsss.modules.material.bulk_profile`)."""
+        if torch.is_grad_enabled() or is_tracing() or not all(d.numel() for d in distances):
+            return self.material
+        d_max = max(float(d.max()) for d in distances)
+        return bulk_profile(self.material, d_max, distances[0].dtype, distances[0].device)
 
-    def _moment_rule(self, lo: int, hi: int) -> Tensor:
+    def _sampled(self, lo: int, hi: int, profile=None) -> Tensor:
+        """The entries ``lo:hi`` sampled at the source vertex, :math:`A_i/3\\, R_d(d_{ij})`: :math:`(hi - lo, C)`."""
+        profile = self.material if profile is None else profile
+        return self.source_area[lo:hi].unsqueeze(-1) * profile(self.distance[lo:hi].unsqueeze(-1))
+
+    def _moment_rule(self, lo: int, hi: int, profile=None) -> Tensor:
         """The moment rule of the entries ``lo:hi``, :math:`(hi - lo, C)`.
 
         :math:`A_i/3\\,[\\tfrac12 R(r + \\sigma_r) + \\tfrac12 R(|r - \\sigma_r|) + R(\\sqrt{r^2 + \\sigma_t^2})
         - R(r)]`.
         """
-        f = self.material(torch.cat([self.distance[None, lo:hi], self.hat_moments[:, lo:hi]]).unsqueeze(-1))
+        profile = self.material if profile is None else profile
+        f = profile(torch.cat([self.distance[None, lo:hi], self.hat_moments[:, lo:hi]]).unsqueeze(-1))
         return self.source_area[lo:hi].unsqueeze(-1) * (0.5 * (f[1] + f[2]) + f[3] - f[0])
 
     @staticmethod
@@ -796,10 +831,11 @@ class GlobalResponse(nn.Module):
             out = torch.zeros(n, terms.shape[-1], dtype=terms.dtype, device=terms.device)
             return out.index_add(0, self.hat_term_entry.long(), terms)  # the exported ScatterND takes int64
         out = torch.zeros(n, channels, dtype=dtype, device=self.hat_distance.device)
+        profile = self._bulk_profile(self.hat_distance)
         block = 1 << 18
         for lo in range(0, total, block):
             hi = min(total, lo + block)
-            terms = self.hat_weight[lo:hi].unsqueeze(-1) * self.material(self.hat_distance[lo:hi].unsqueeze(-1))
+            terms = self.hat_weight[lo:hi].unsqueeze(-1) * profile(self.hat_distance[lo:hi].unsqueeze(-1))
             out.index_add_(0, self.hat_term_entry[lo:hi], terms.to(dtype))
         return out
 

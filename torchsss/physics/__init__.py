@@ -35,7 +35,13 @@ from torchsss.physics.fresnel import (
     schlick_transmittance,
     transmittance,
 )
-from torchsss.physics.lut import ProfileTable, build_profile_table, lookup_profile_table, profile_table_error
+from torchsss.physics.lut import (
+    ProfileTable,
+    build_profile_table,
+    fitted_profile_table,
+    lookup_profile_table,
+    profile_table_error,
+)
 from torchsss.physics.materials import PROFILES, Material, MaterialPreset, preset, preset_names
 from torchsss.physics.sh import SH_COEFFS, fresnel_cosine_zonal, project_sh, sh_basis, sh_irradiance, sphere_quadrature
 
@@ -63,6 +69,7 @@ __all__ = [
     "dipole_spectrum",
     "dipole_terms",
     "exit_radiance",
+    "fitted_profile_table",
     "fresnel_cosine_zonal",
     "fresnel_reflectance",
     "fresnel_transmittance",
