@@ -432,6 +432,33 @@ def test_lensch_offers_the_unblended_1024_atlas_and_picks_it_as_the_most_accurat
     assert pred[1024]["error"] < pred[512]["error"]
 
 
+def test_lensch_setup_carries_its_first_frames_profile_evaluations():
+    """The first frame after a build evaluates the profile at every throughput entry and kernel tap (3-4 s at atlas
+    1024 on the shared meshes): charged with the setup, separately given as ``first_s``, growing with the entries
+    (the full mesh's estimate scaled by faces^2, capped) and the atlas; none of it without an entry estimate but
+    the taps; the blended build's full planes at k^2 taps."""
+    s = load_scene(default_scene_path())
+    facts = SceneFacts.from_scene(s)
+    assert facts.throughput_entries > 1_000_000
+    zero = {"lensch_t_entry": 0.0, "lensch_t_tap": 0.0, "lensch_t_tap_full": 0.0}
+    for res in (512, 1024):
+        p = predict("lensch", {"atlas_resolution": res}, facts, s.material)
+        bare = predict("lensch", {"atlas_resolution": res}, facts, s.material, model=zero)
+        assert p["first_s"] > 0.0 and bare["first_s"] == 0.0
+        assert p["setup_s"] == pytest.approx(bare["setup_s"] + p["first_s"])
+        assert p["frame_s"] == bare["frame_s"] and p["error"] == bare["error"]
+    full = predict("lensch", {"atlas_resolution": 1024}, facts, s.material)
+    fewer = predict("lensch", {"atlas_resolution": 1024, "source_faces": facts.faces // 2}, facts, s.material)
+    unknown = predict("lensch", {"atlas_resolution": 1024}, dataclasses.replace(facts, throughput_entries=-1),
+                      s.material)
+    assert unknown["first_s"] < fewer["first_s"] < full["first_s"]
+    assert full["first_s"] - unknown["first_s"] == pytest.approx(MODEL["lensch_t_entry"] * facts.throughput_entries)
+    taps = predict("lensch", {"atlas_resolution": 1024}, facts, s.material, model={"lensch_t_entry": 0.0})
+    assert taps["first_s"] == pytest.approx(MODEL["lensch_t_tap"] * 1024 ** 2 * 49)  # unblended: k = 7
+    blended = predict("lensch", {"atlas_resolution": 512}, facts, s.material, model={"lensch_t_entry": 0.0})
+    assert blended["first_s"] > MODEL["lensch_t_tap_full"] * 512 ** 2 * 49  # blended: k > 7, full planes
+
+
 def test_rule_reference_when_cheapest():
     p = plan(_scene(res=8), 0.02)
     assert p.method == "reference" and "reference" in p.reasons

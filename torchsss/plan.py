@@ -155,6 +155,14 @@ MODEL: dict[str, float] = {
     # 1.41e-6 and 0.229); the setup constants kept (the free fit of 16 rows moved s_face 12x)
     "lensch_t_texel": 2.91e-07, "lensch_f0": 0.0966, "lensch_s0": 3.23, "lensch_s_face": 2.04e-05,
     "lensch_s_kernel": 2.92e-06, "lensch_floor": 0.0175, "lensch_texel": 0.126, "lensch_blend": 0.083,
+    # lensch's first frame after a build (or a material edit) evaluates the profile at every throughput entry and
+    # kernel tap: t_entry * entries + t_tap * res^2 * k^2, charged with the setup (the calibration trades time
+    # the median frame, without it). Measured 2026-11-27 (benchmarks/bench_lensch_memory.py, 1 thread, the
+    # default scene, the profile through bulk_profile's tables): 1.59 s for 6.36M entries with the hat quadrature
+    # at atlas 1024; the kernel planes 1.53 s at 1024 (unblended: k = 7, the symmetric half planes) and 1.68 s at
+    # 512 (blended, k = 11, full planes): 3.0e-8 and 5.3e-8 s per texel and tap. Checked on the shared bunny and
+    # igea at atlas 1024 (6,744 and 5,874 source faces): 3.5 and 3.6 s predicted, 3.56 and 3.28 s measured
+    "lensch_t_entry": 2.5e-07, "lensch_t_tap": 3.0e-08, "lensch_t_tap_full": 5.3e-08,
     # the fused dipole pair sum (torchsss.ops.fused, compiled; reference, icdf and hybrid frames of >= COLD_WORK pairs;
     # the hybrid's split variant: 44 Mpairs/s warm on the default scene at 128^2, 1 thread):
     # seconds per pair at 1 thread (fitted: 109 Mpairs/s on the warm calibration rows; 55-94 Mpairs/s measured in
@@ -661,6 +669,8 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             warm: frozenset[str] = frozenset()) -> dict[str, float]:
     """Predicted ``error``, ``setup_s`` and ``frame_s`` of ``method`` with ``knobs`` on a scene (see the module).
 
+    Lensch's ``setup_s`` includes its first frame's profile evaluations (also given alone as ``first_s``).
+
     ``material`` is a :class:`~torchsss.physics.Material` (its tensors feed the alias error); ``sources`` is the
     reference's source count when it differs from the facts' (decimated sources); ``warm``: the fused pair-sum
     kernels this process has already compiled (:func:`warm_kernels`: ``"plain"``, ``"split"``), charged no compile.
@@ -765,7 +775,12 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         setup = m["lensch_s0"] + m["lensch_s_face"] * faces + dec_s
         if blend:
             setup += m["lensch_s_kernel"] * res * res * k * k
-        return {"error": err + atlas_dev, "setup_s": setup,
+        # the first frame's profile evaluations (once per material): the full mesh's entries scaled by faces^2,
+        # at most what the decimation rule keeps (0.9 of the cap); unknown (not estimated) counts none
+        entries = min(max(facts.throughput_entries, 0) * (faces / facts.faces) ** 2, 0.9 * MAX_THROUGHPUT_ENTRIES)
+        taps = m["lensch_t_tap_full"] * res * res * k * k if blend else m["lensch_t_tap"] * res * res * 49  # k = 7
+        first = m["lensch_t_entry"] * entries + taps
+        return {"error": err + atlas_dev, "setup_s": setup + first, "first_s": first,
                 "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
 
