@@ -606,7 +606,8 @@ def test_scene_facts_are_cached_per_scene_and_mesh():
     a = SceneFacts.from_scene(s, throughput=False)
     assert SceneFacts.from_scene(s, throughput=False) is a and a.throughput_entries == -1
     full = SceneFacts.from_scene(s)  # the throughput was not estimated: recomputed with it
-    assert full is not a and full.throughput_entries > 0 and dataclasses.replace(full, throughput_entries=-1) == a
+    assert full is not a and full.throughput_entries > 0 and len(full.throughput_cut) == 3
+    assert dataclasses.replace(full, throughput_entries=-1, throughput_cut=()) == a
     assert SceneFacts.from_scene(s, throughput=False) is full  # a superset serves
     other = SceneFacts.from_scene(dataclasses.replace(s, size_mm=24.0), throughput=False)
     assert other.size_mm > a.size_mm

@@ -70,7 +70,9 @@ from torchsss.geometry.lensch import (
     ATLAS_UTILIZATION,
     BLEND_MIN_REACH,
     MAX_THROUGHPUT_ENTRIES,
+    THROUGHPUT_THRESHOLD,
     estimate_throughput_entries,
+    throughput_cut,
 )
 from torchsss.geometry.lights import incident_light
 from torchsss.geometry.mesh import CREASE_DEG, Mesh, decimate, surface_deviation
@@ -98,6 +100,7 @@ RULES = {
     "splat_budget": "splat: the budget's tolerance and the grid from the tolerance",
     "blend": "lensch: blending only where the kernel reaches the neighbouring vertices",
     "creases": "lensch: charged the irradiance's detail where creases meet (light entering a slab's rim)",
+    "threshold": "lensch: a finer throughput threshold only where the default cuts light the seen side needs",
     "reference": "the reference itself when it is the cheapest way to the tolerance",
     "compile": "reference/icdf/hybrid: one compile of the fused pair sum, unless this process already compiled it",
     "local_term": "hybrid: its local term's pairs costed; no split or a narrowing one planned as the icdf estimator",
@@ -195,6 +198,12 @@ MAX_EDGE_PX = 3.0
 MIN_SAMPLES = 1024.0
 #: The splat budget tolerances the planner considers.
 SPLAT_EPS = (0.003, 0.01, 0.03)
+#: Lensch's throughput thresholds the planner considers: the default, and finer ones where the default cuts light
+#: the image needs (:attr:`SceneFacts.throughput_cut`).
+LENSCH_THRESHOLDS = tuple(float(f"{THROUGHPUT_THRESHOLD * f:.3g}") for f in (1.0, 0.1, 0.01))
+#: The cut (a share of the image's radiosity) above which the planner offers Lensch the finer threshold: 0.1% (on
+#: the verification scenes the default cuts at most 0.09% but on the back-lit 60 mm whole-milk sphere, 4.6%).
+CUT_MATTERS = 0.001
 #: The reference tolerances the planner considers (the first is the truth).
 REFERENCE_EPS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3)
 
@@ -242,6 +251,12 @@ class SceneFacts:
             (:func:`~torchsss.geometry.lensch.estimate_throughput_entries`; -1 when not estimated: ``from_scene``
             with ``throughput=False``, for plans that cannot pick Lensch); they scale with the square of the
             vertex count where the profile reaches across the object.
+        throughput_cut: per threshold of :data:`LENSCH_THRESHOLDS`, the share of the image's radiosity that
+            Lensch's throughput threshold cuts (:func:`~torchsss.geometry.lensch.throughput_cut`: light that
+            reaches the seen side only along entries below the threshold, as through a large back-lit object of a
+            long-scattering material); () when not estimated.
+        throughput_entries_finer: the full mesh's entries at the finer thresholds (``LENSCH_THRESHOLDS[1:]``),
+            estimated only where the default threshold cuts enough to matter (:data:`CUT_MATTERS`); () otherwise.
     """
 
     faces: int
@@ -267,6 +282,8 @@ class SceneFacts:
     local_bound_mm: float = 0.0
     atlas_deviation_mm: float = 0.0
     irradiance_detail: float = 0.0
+    throughput_cut: tuple[float, ...] = ()
+    throughput_entries_finer: tuple[int, ...] = ()
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True) -> SceneFacts:
@@ -336,6 +353,11 @@ class SceneFacts:
                    throughput_entries=estimate_throughput_entries(mesh, mat, rows=64) if throughput else -1,
                    source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius),
                    irradiance_detail=irradiance_detail(mesh, scene.lights))
+        if throughput:
+            cut = throughput_cut(mesh, mat, scene.lights, scene.camera.eye, LENSCH_THRESHOLDS)
+            finer = tuple(estimate_throughput_entries(mesh, mat, threshold=t, rows=64) for t in LENSCH_THRESHOLDS[1:]) \
+                if cut[0] > CUT_MATTERS else ()
+            facts = dataclasses.replace(facts, throughput_cut=cut, throughput_entries_finer=finer)
         target = detail_faces(facts)
         if target is None:
             return facts
@@ -770,19 +792,34 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         blend = 5 * texel / edge >= BLEND_MIN_REACH  # plan_lensch: blending only where the kernel reaches
         # the irradiance's detail at the hats' scale is answered only by the kernels, within their window and their
         # chart: charged as it is (not fitted; 0 on smooth meshes under smooth light)
+        # the light the throughput's threshold cuts from the image (not fitted; 0 unless a large back-lit object of a
+        # long-scattering material is lit only along entries below it)
+        level = _threshold_level(float(knobs.get("threshold", THROUGHPUT_THRESHOLD)))
+        cut = facts.throughput_cut[level] if facts.throughput_cut else 0.0
         err = math.hypot(m["lensch_floor"], m["lensch_texel"] * (texel / min(facts.ell_mm)) ** 3,
-                         m["lensch_blend"] if blend else 0.0, facts.irradiance_detail)
+                         m["lensch_blend"] if blend else 0.0, facts.irradiance_detail, cut)
         setup = m["lensch_s0"] + m["lensch_s_face"] * faces + dec_s
         if blend:
             setup += m["lensch_s_kernel"] * res * res * k * k
         # the first frame's profile evaluations (once per material): the full mesh's entries scaled by faces^2,
         # at most what the decimation rule keeps (0.9 of the cap); unknown (not estimated) counts none
-        entries = min(max(facts.throughput_entries, 0) * (faces / facts.faces) ** 2, 0.9 * MAX_THROUGHPUT_ENTRIES)
+        full = facts.throughput_entries_finer[level - 1] if level and facts.throughput_entries_finer \
+            else facts.throughput_entries
+        entries = min(max(full, 0) * (faces / facts.faces) ** 2, 0.9 * MAX_THROUGHPUT_ENTRIES)
         taps = m["lensch_t_tap_full"] * res * res * k * k if blend else m["lensch_t_tap"] * res * res * 49  # k = 7
         first = m["lensch_t_entry"] * entries + taps
         return {"error": err + atlas_dev, "setup_s": setup + first, "first_s": first,
                 "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
+
+
+def _threshold_level(threshold: float) -> int:
+    """The index in :data:`LENSCH_THRESHOLDS` of the finest planned threshold at or above ``threshold``."""
+    level = 0
+    for i, t in enumerate(LENSCH_THRESHOLDS):
+        if threshold <= t * (1.0 + 1e-9):
+            level = i
+    return level
 
 
 def _throughput_fit(scene: Scene, mesh: Mesh | None, material: torch.nn.Module, faces: int) -> int:
@@ -805,6 +842,46 @@ def _throughput_fit(scene: Scene, mesh: Mesh | None, material: torch.nn.Module, 
     if estimate_throughput_entries(source_mesh(mesh, more), material, rows=64) <= 0.9 * MAX_THROUGHPUT_ENTRIES:
         return more
     return faces
+
+
+def _finer_thresholds(scene: Scene, mesh: Mesh | None, facts: SceneFacts, material: torch.nn.Module,
+                      planned: list[dict], decimate: int | None) -> list[dict]:
+    """Lensch candidates at the finer thresholds of :data:`LENSCH_THRESHOLDS`, where the default one cuts light.
+
+    "Model only what a scene requires": the far entries are kept only where the seen side is lit along them
+    (:attr:`SceneFacts.throughput_cut` over :data:`CUT_MATTERS`), and only at a threshold whose throughput, on the
+    mesh Lensch builds on, is estimated within 0.9 of :data:`MAX_THROUGHPUT_ENTRIES` (the builder refuses past the
+    cap); each threshold's candidates copy the default's (every atlas size) with the threshold added and its rule.
+    """
+    if not facts.throughput_cut or facts.throughput_cut[0] <= CUT_MATTERS:
+        for cand in planned:
+            if cand["method"] == "lensch" and facts.throughput_cut:
+                cand["rules"]["threshold"] = (f"threshold {THROUGHPUT_THRESHOLD:g} (default): it cuts "
+                                              f"{facts.throughput_cut[0]:.2%} of the seen radiosity")
+        return []
+    default = [c for c in planned if c["method"] == "lensch" and "threshold" not in c["knobs"]]
+    source = None
+    out = []
+    for level, t in enumerate(LENSCH_THRESHOLDS[1:], start=1):
+        if facts.throughput_cut[level - 1] <= CUT_MATTERS:
+            break  # the coarser threshold already keeps what the image needs
+        if source is None:
+            full = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
+            source = source_mesh(full, decimate) if decimate else full
+        entries = estimate_throughput_entries(source, material, threshold=t, rows=64)
+        why = (f"threshold {t:g}: the default {THROUGHPUT_THRESHOLD:g} cuts {facts.throughput_cut[0]:.1%} of the seen "
+               f"radiosity (the seen side lit along long paths), {t:g} cuts {facts.throughput_cut[level]:.1%}")
+        if entries > 0.9 * MAX_THROUGHPUT_ENTRIES:
+            for cand in default:
+                cand["rules"]["threshold"] = (f"{why}, but would keep ~{entries:.3g} entries on {source.num_faces} "
+                                              "faces, over the cap: not offered")
+            break
+        for cand in default:
+            cand["rules"]["threshold"] = f"threshold {THROUGHPUT_THRESHOLD:g} (default): it cuts " \
+                                         f"{facts.throughput_cut[0]:.1%} of the seen radiosity"
+            out.append({**cand, "knobs": {**cand["knobs"], "threshold": t},
+                        "rules": {**cand["rules"], "threshold": f"{why} (~{entries:.3g} entries)"}})
+    return out
 
 
 def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
@@ -919,6 +996,7 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                     r["creases"] = (f"irradiance detail {facts.irradiance_detail:.1%} where creases meet charged: the "
                                     "vertex hats cannot carry it, nor the kernels reach it across a chart seam")
                 out.append({"method": method, "knobs": {"atlas_resolution": res}, "decimate": decimate, "rules": r})
+            out += _finer_thresholds(scene, mesh, facts, prof.module, out, decimate)
     for cand in out:  # the atlas methods build on the decimated mesh; the camera sees the full one
         if cand["method"] in ATLAS_METHODS and cand["decimate"]:
             cand["knobs"] = {**cand["knobs"], "source_faces": int(cand["decimate"])}
