@@ -21,16 +21,21 @@ __all__ = ["camera_uv", "irradiance_atlas"]
 
 
 def irradiance_atlas(mesh: Mesh, atlas: Atlas, lights: Sequence[Light], eta: float | Tensor, *,
-                     shadow_resolution: int = 1024, fresnel: str = "exact") -> Tensor:
+                     shadow_resolution: int = 1024, fresnel: str = "exact",
+                     texels: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """Irradiance at every valid atlas texel :math:`(1, 3, H, W)`, shadow-mapped per light.
 
     Args:
-        mesh: the object (mm).
-        atlas: its texture atlas.
+        mesh: the object (mm): the shadow maps are rendered from it.
+        atlas: its texture atlas (or the atlas of a decimated copy of it, with ``texels``).
         lights: point, spot or directional lights.
         eta: relative index of refraction (a number, or the material module's ``eta`` tensor: gradients flow).
         shadow_resolution: size of each light's shadow map.
         fresnel: ``"exact"``, ``"schlick"`` or ``"none"``.
+        texels: where the valid texels are lit, ``(index, position, normal)`` as
+            :attr:`~torchsss.geometry.atlas.Atlas.valid_texels` (the default): an atlas built on a decimated copy
+            of ``mesh`` lights its texels at their closest points on ``mesh``, with its normals
+            (:meth:`~torchsss.pipelines.atlas_view.AtlasView.lit_texels`).
 
     Examples:
         >>> from torchsss.geometry import DirectionalLight, build_atlas, sphere
@@ -39,7 +44,7 @@ def irradiance_atlas(mesh: Mesh, atlas: Atlas, lights: Sequence[Light], eta: flo
         torch.Size([1, 3, 64, 64])
     """
     h, w = atlas.shape
-    index, pts, nrm = atlas.valid_texels  # only valid texels are lit; the rest of the image stays 0
+    index, pts, nrm = atlas.valid_texels if texels is None else texels  # only valid texels are lit; the rest: 0
     pts, nrm = pts.unsqueeze(0), nrm.unsqueeze(0)
     vis = [shadow_visibility(build_shadow_map(mesh, light, shadow_resolution), pts, nrm, light) for light in lights]
     e = surface_irradiance(pts, nrm, list(lights), eta, visibility=vis, fresnel=fresnel)[0]

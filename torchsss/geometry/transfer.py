@@ -21,7 +21,8 @@ from torch import Tensor
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.geometry.sampling import SurfaceSamples
 
-__all__ = ["ClosestPoints", "SurfaceLocator", "closest_point_on_triangle", "project_samples", "transferred_uv"]
+__all__ = ["ClosestPoints", "SurfaceLocator", "closest_point_on_triangle", "closest_surface", "project_samples",
+           "transferred_uv"]
 
 
 class ClosestPoints(NamedTuple):
@@ -128,7 +129,7 @@ class SurfaceLocator:
         if points.shape[0] == 0:
             empty = points.new_zeros(0)
             return ClosestPoints(torch.zeros(0, dtype=torch.int64, device=device), points.new_zeros(0, 3), empty)
-        _, idx = self._tree.query(points.detach().double().cpu().numpy(), k=self.candidates)
+        _, idx = self._tree.query(points.detach().double().cpu().numpy(), k=self.candidates, workers=-1)
         cand = torch.as_tensor(idx, dtype=torch.int64, device=device).reshape(points.shape[0], -1)  # (P, K)
         tri = self._tri.to(device=device, dtype=points.dtype)[cand]  # (P, K, 3, 3)
         p = points.detach()[:, None, :]
@@ -189,11 +190,29 @@ def project_samples(locator: SurfaceLocator, samples: SurfaceSamples) -> Surface
     """
     if not isinstance(samples, SurfaceSamples):
         raise TypeError(f"samples: expected SurfaceSamples, got {type(samples).__name__}")
+    position, normal, hit = closest_surface(locator, samples.position)
+    return SurfaceSamples(position, normal, samples.area, hit.face, hit.bary.to(samples.bary.dtype))
+
+
+def closest_surface(locator: SurfaceLocator, points: Tensor) -> tuple[Tensor, Tensor, ClosestPoints]:
+    """The closest points of ``locator``'s mesh to :math:`(P, 3)` points: where they lie and how they are shaded.
+
+    Returns:
+        ``(position, normal, hit)``: :math:`(P, 3)` positions on the mesh (mm) and unit creased shading normals
+        there (:meth:`~torchsss.geometry.mesh.Mesh.corner_normals` interpolated), in ``points``' dtype, and the
+        :class:`ClosestPoints` (face, barycentrics, distance).
+
+    Examples:
+        >>> from torchsss.geometry import sphere
+        >>> pos, nrm, hit = closest_surface(SurfaceLocator(sphere(10.0, 3)), torch.tensor([[0.0, 0.0, 14.0]]))
+        >>> round(float(pos[0, 2]), 1), round(float(nrm[0, 2]), 2), round(float(hit.distance[0]), 1)
+        (10.0, 1.0, 4.0)
+    """
     mesh = locator.mesh
-    hit = locator.locate(samples.position)
-    dtype = samples.position.dtype
+    hit = locator.locate(points)
+    dtype = points.dtype
     bary = hit.bary.to(dtype).unsqueeze(-1)
     position = (mesh.vertices.to(dtype)[mesh.faces[hit.face]] * bary).sum(1)
     normal = torch.nn.functional.normalize((mesh.corner_normals().to(dtype)[hit.face] * bary).sum(1), dim=-1,
                                            eps=1e-12)
-    return SurfaceSamples(position, normal, samples.area, hit.face, hit.bary.to(samples.bary.dtype))
+    return position, normal, hit

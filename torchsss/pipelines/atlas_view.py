@@ -17,7 +17,7 @@ from torchsss.geometry.atlas import Atlas
 from torchsss.geometry.atlas_frame import camera_uv
 from torchsss.geometry.camera import Camera
 from torchsss.geometry.mesh import Mesh, decimate
-from torchsss.geometry.transfer import SurfaceLocator, transferred_uv
+from torchsss.geometry.transfer import SurfaceLocator, closest_surface, transferred_uv
 
 __all__ = ["AtlasView", "source_mesh"]
 
@@ -49,6 +49,26 @@ class AtlasView:
         self.locator = None if source is mesh else SurfaceLocator(source)
         self._camera: Camera | None = None
         self._uv: Tensor | None = None
+        self._lit: tuple[Tensor, Tensor, Tensor] | None = None
+
+    def lit_texels(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Where the lights meet the atlas's valid texels: ``(index, position, normal)``, built once.
+
+        Without decimation :attr:`~torchsss.geometry.atlas.Atlas.valid_texels`. On a decimated source mesh every valid
+        texel (gutters too: they stand in for the surface across their chart's edge) is lit at its closest point on
+        the mesh the camera sees, with that mesh's creased shading normal, and shadowed against that mesh (pass
+        ``mesh`` to :func:`~torchsss.geometry.atlas_frame.irradiance_atlas`), as the reference's decimated sources
+        are (:func:`~torchsss.geometry.transfer.project_samples`): the decimation sets how many texels and where the
+        kernels and throughput reach, not the surface that is lit. The shared igea (268,686 faces, 30 mm skin1, 256 x
+        256): Lensch on 5,874 faces 2.36% -> 1.13% against the reference, icdf on 17,139 faces 1.54% -> 0.50%.
+        """
+        if self.locator is None:
+            return self.atlas.valid_texels
+        if self._lit is None:
+            index, points, _ = self.atlas.valid_texels
+            position, normal, _ = closest_surface(SurfaceLocator(self.mesh.with_dtype(points.dtype)), points)
+            self._lit = (index, position.contiguous(), normal.contiguous())
+        return self._lit
 
     @property
     def transferred(self) -> bool:

@@ -252,6 +252,7 @@ class IcdfRenderer(Renderer):
                                 levels=k["levels"], max_pairs=k["max_pairs"], progress=self.progress)
         self.atlas, self.module = self.built.atlas, self.built.module
         self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
+        self.view.lit_texels()  # built with the setup
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, eta = self.knobs, self.mesh, self.eta
@@ -260,8 +261,8 @@ class IcdfRenderer(Renderer):
         t0 = time.perf_counter()
         e, reused = self._per_lights(  # depends on the lights and eta alone: kept while they stay
             "irradiance_atlas", lights,
-            lambda: irradiance_atlas(self.source_mesh, self.atlas, lights, eta,
-                                     shadow_resolution=k["shadow_resolution"]).to(dtype), (k["shadow_resolution"],))
+            lambda: irradiance_atlas(self.mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"],
+                                     texels=self.view.lit_texels()).to(dtype), (k["shadow_resolution"],))
         t1 = time.perf_counter()
         u = sample_uniforms(k["samples"], seed=k["seed"], sobol=k["sobol"], dtype=dtype, device=device)
         mask = gbuf.mask[0, 0]
@@ -347,6 +348,7 @@ class HybridRenderer(IcdfRenderer):
                                   progress=self.progress)
         self.atlas, self.module = self.built.atlas, self.built.module
         self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
+        self.view.lit_texels()  # built with the setup
         self._plan_cache: tuple | None = None
 
     def _local_plan(self, camera: Camera, gbuf) -> tuple | None:

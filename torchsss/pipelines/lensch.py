@@ -201,6 +201,7 @@ class LenschRenderer(Renderer):
         self.module = self.built.module
         self.atlas = self.built.atlas
         self.view = AtlasView(self.mesh, self.source_mesh, self.atlas)
+        self.view.lit_texels()  # built with the setup
 
     def _render(self, lights: list[Light], camera: Camera) -> RenderResult:
         k, mesh, eta = self.knobs, self.mesh, self.eta
@@ -209,7 +210,8 @@ class LenschRenderer(Renderer):
         times = {}
 
         def radiosity_atlas() -> Tensor:  # depends on the lights and the material alone: kept while they stay
-            e = irradiance_atlas(self.source_mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"])
+            e = irradiance_atlas(self.mesh, self.atlas, lights, eta, shadow_resolution=k["shadow_resolution"],
+                                 texels=self.view.lit_texels())
             times["t1"] = time.perf_counter()
             return self.module(e)
 
