@@ -284,9 +284,11 @@ class LocalResponse(nn.Module):
         """The local response of ``atlas``'s valid texels with taps derived from the atlas's maps, not stored.
 
         The same kernels as ``LocalResponse(local_kernel_geometry(atlas, k, compact=True), ...)``, bit for bit
-        (the same distance formula on the same positions), but the :math:`(N, k, k)` distances and areas (234 MB
-        at atlas 1024 and k = 7) are not kept: every evaluation of the kernels (once per material) gathers the
-        taps' positions and areas from the atlas's padded maps, block by block.
+        (the same distance formula on the same positions; outside autograd each evaluates the profile through a
+        table of its own range, :func:`~torchsss.modules.material.bulk_profile`, so there they agree within its
+        tolerance), but the :math:`(N, k, k)` distances and areas (234 MB at atlas 1024 and k = 7) are not kept:
+        every evaluation of the kernels (once per material) gathers the taps' positions and areas from the atlas's
+        padded maps, block by block.
 
         Args:
             atlas: The :class:`~torchsss.geometry.Atlas` (its ``padding`` at least ``k // 2``).
@@ -310,7 +312,7 @@ class LocalResponse(nn.Module):
             >>> mat = DipoleMaterial.from_preset("marble")
             >>> derived = LocalResponse.from_atlas(atlas, 3, mat)
             >>> stored = LocalResponse(local_kernel_geometry(atlas, 3, compact=True), mat)
-            >>> with torch.no_grad():
+            >>> with torch.enable_grad():  # the profile's formula (outside autograd: tables of each one's range)
             ...     bool((derived.planes() == stored.planes()).all()), derived.distance is None
             (True, True)
         """
