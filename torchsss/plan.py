@@ -878,8 +878,8 @@ def _finer_thresholds(scene: Scene, mesh: Mesh | None, facts: SceneFacts, materi
             full = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
             source = source_mesh(full, decimate) if decimate else full
         entries = estimate_throughput_entries(source, material, threshold=t, rows=64)
-        why = (f"threshold {t:g}: the default {THROUGHPUT_THRESHOLD:g} cuts {facts.throughput_cut[0]:.1%} of the seen "
-               f"radiosity (the seen side lit along long paths), {t:g} cuts {facts.throughput_cut[level]:.1%}")
+        why = (f"threshold {t:g}: the default {THROUGHPUT_THRESHOLD:g} cuts {facts.throughput_cut[0]:.2%} of the seen "
+               f"radiosity (the seen side lit along long paths), {t:g} cuts {facts.throughput_cut[level]:.2%}")
         if entries > 0.9 * MAX_THROUGHPUT_ENTRIES:
             for cand in default:
                 cand["rules"]["threshold"] = (f"{why}, but would keep ~{entries:.3g} entries on {source.num_faces} "
@@ -887,7 +887,7 @@ def _finer_thresholds(scene: Scene, mesh: Mesh | None, facts: SceneFacts, materi
             break
         for cand in default:
             cand["rules"]["threshold"] = f"threshold {THROUGHPUT_THRESHOLD:g} (default): it cuts " \
-                                         f"{facts.throughput_cut[0]:.1%} of the seen radiosity"
+                                         f"{facts.throughput_cut[0]:.2%} of the seen radiosity"
             out.append({**cand, "knobs": {**cand["knobs"], "threshold": t},
                         "rules": {**cand["rules"], "threshold": f"{why} (~{entries:.3g} entries)"}})
     return out
