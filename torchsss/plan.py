@@ -178,6 +178,7 @@ MODEL: dict[str, float] = {
     # on the full mesh once, to be lit there (AtlasView.lit_texels; 1 thread, 2026-11-27: 0.49-2.07 s for 139k-637k
     # texels on the shared bunny and igea, 3.2-3.7e-6 s a texel)
     "transfer_s_texel": 3.3e-6,
+    "valid_fraction": 0.6,
 }
 
 #: Safety factor: a candidate qualifies when its predicted error times this is within the tolerance. The smallest
@@ -311,6 +312,7 @@ class SceneFacts:
 
     @classmethod
     def _compute(cls, scene: Scene, mesh: Mesh, throughput: bool) -> SceneFacts:
+        given = mesh  # decimated as given (its dtype does not change the collapse), so the plan's fit reuses it
         mesh = mesh.with_dtype(torch.float64)
         prof = _Profile.of(scene.material)
         mat = prof.module
@@ -361,8 +363,8 @@ class SceneFacts:
             # on the mesh Lensch builds on: where the throughput would not fit, decimated as candidates() will
             # (larger vertex areas are cut less: the 30 mm marble bunny's full mesh 0.23-0.48%, where its Lensch
             # build on 5,898 faces measured the same at 1e-5 and 1e-6)
-            fit = int(mesh.num_faces * math.sqrt(0.6 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
-            lensch_mesh = source_mesh(mesh, max(500, fit)) if fit < 0.95 * mesh.num_faces else mesh
+            fit = _lensch_fit(mesh.num_faces, facts.throughput_entries)
+            lensch_mesh = _source_mesh(given, max(500, fit)) if fit < 0.95 * mesh.num_faces else mesh
             cut = throughput_cut(lensch_mesh, mat, scene.lights, scene.camera.eye, LENSCH_THRESHOLDS)
             finer = tuple(estimate_throughput_entries(mesh, mat, threshold=t, rows=64) for t in LENSCH_THRESHOLDS[1:]) \
                 if cut[0] > CUT_MATTERS else ()
@@ -772,7 +774,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         u, d = max(facts.unlit, 0.1), depth(facts)
         n = int(knobs.get("samples", 4096))
         res = int(knobs.get("atlas_resolution", 512))
-        lit_s = m["transfer_s_texel"] * 0.6 * res * res if decimate else 0.0
+        lit_s = m["transfer_s_texel"] * m["valid_fraction"] * res * res if decimate else 0.0
         setup = m["icdf_s0"] + m["icdf_s_face"] * faces + m["icdf_s_texel"] * res * res + dec_s + lit_s
         if method == "icdf":
             err = math.hypot(m["icdf_floor"],
@@ -812,7 +814,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
                          m["lensch_blend"] if blend else 0.0, facts.irradiance_detail, cut)
         setup = m["lensch_s0"] + m["lensch_s_face"] * faces + dec_s
         if decimate:  # the valid texels lit on the full mesh (AtlasView.lit_texels)
-            setup += m["transfer_s_texel"] * 0.6 * res * res
+            setup += m["transfer_s_texel"] * m["valid_fraction"] * res * res
         if blend:
             setup += m["lensch_s_kernel"] * res * res * k * k
         # the first frame's profile evaluations (once per material): the full mesh's entries scaled by faces^2,
@@ -825,6 +827,36 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         return {"error": err + atlas_dev, "setup_s": setup + first, "first_s": first,
                 "frame_s": m["lensch_t_texel"] * res * res + m["lensch_f0"]}
     raise ValueError(f"method: expected one of reference, splat, icdf, hybrid, lensch, got {method!r}")
+
+
+def _lensch_fit(faces: int, entries: int) -> int:
+    """The faces at which Lensch's throughput (``entries`` on the full mesh of ``faces``) would keep 0.6 of the cap.
+
+    Entries scale with the square of the vertex count where the profile reaches across the object (on the default
+    scene within 1%: 6.30M estimated, 6.36M kept).
+    """
+    return int(faces * math.sqrt(0.6 * MAX_THROUGHPUT_ENTRIES / max(entries, 1)))
+
+
+#: _source_mesh's memo: (id of the mesh, faces) -> (mesh, decimated); a few entries, the meshes held.
+_DECIMATED: dict[tuple[int, int], tuple[Mesh, Mesh]] = {}
+
+
+def _source_mesh(mesh: Mesh, faces: int) -> Mesh:
+    """:func:`~torchsss.pipelines.atlas_view.source_mesh`, remembered for a few meshes.
+
+    Planning decimates a scan to the same count for the facts' throughput cut, the throughput fit and the finer
+    thresholds (the shared igea: about 1 s each).
+    """
+    key = (id(mesh), int(faces))
+    hit = _DECIMATED.get(key)
+    if hit is not None and hit[0] is mesh:
+        return hit[1]
+    out = source_mesh(mesh, int(faces))
+    if len(_DECIMATED) >= 4:
+        _DECIMATED.pop(next(iter(_DECIMATED)))
+    _DECIMATED[key] = (mesh, out)
+    return out
 
 
 def _threshold_level(threshold: float) -> int:
@@ -846,14 +878,14 @@ def _throughput_fit(scene: Scene, mesh: Mesh | None, material: torch.nn.Module, 
     a long-scattering scan: the side-lit 30 mm marble bunny measured 3.0% at 5,360 faces (estimated 7.0e6
     entries) and 2.5% at 6,400 (9.6e6).
     """
-    mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
-    est = estimate_throughput_entries(source_mesh(mesh, faces), material, rows=64)
+    mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh  # the estimate works in float64
+    est = estimate_throughput_entries(_source_mesh(mesh, faces), material, rows=64)
     if est > 0.9 * MAX_THROUGHPUT_ENTRIES:
         return int(faces * math.sqrt(0.8 * MAX_THROUGHPUT_ENTRIES / est))
     more = min(mesh.num_faces, int(faces * math.sqrt(0.85 * MAX_THROUGHPUT_ENTRIES / max(est, 1.0))))
     if more < 1.05 * faces:
         return faces
-    if estimate_throughput_entries(source_mesh(mesh, more), material, rows=64) <= 0.9 * MAX_THROUGHPUT_ENTRIES:
+    if estimate_throughput_entries(_source_mesh(mesh, more), material, rows=64) <= 0.9 * MAX_THROUGHPUT_ENTRIES:
         return more
     return faces
 
@@ -880,8 +912,8 @@ def _finer_thresholds(scene: Scene, mesh: Mesh | None, facts: SceneFacts, materi
         if facts.throughput_cut[level - 1] <= CUT_MATTERS:
             break  # the coarser threshold already keeps what the image needs
         if source is None:
-            full = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh.with_dtype(torch.float64)
-            source = source_mesh(full, decimate) if decimate else full
+            full = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh
+            source = _source_mesh(full, decimate) if decimate else full
         entries = estimate_throughput_entries(source, material, threshold=t, rows=64)
         why = (f"threshold {t:g}: the default {THROUGHPUT_THRESHOLD:g} cuts {facts.throughput_cut[0]:.2%} of the seen "
                f"radiosity (the seen side lit along long paths), {t:g} cuts {facts.throughput_cut[level]:.2%}")
@@ -988,7 +1020,7 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
             # 1.6-1.7x low (the 50 mm example bunny at 256 x 256 was planned 1.01e7 entries, over the cap, and the
             # builder refused it); a cut under 5% is not worth its error (the default scene cut 5,856 -> 4,665 faces
             # measured 4.9% instead of 2.6% at 128 x 128)
-            fit = int(facts.faces * math.sqrt(0.6 * MAX_THROUGHPUT_ENTRIES / max(facts.throughput_entries, 1)))
+            fit = _lensch_fit(facts.faces, facts.throughput_entries)
             if fit < 0.95 * facts.faces and (decimate is None or fit < decimate):
                 decimate = max(500, _throughput_fit(scene, mesh, prof.module, fit))
                 rules = {**rules, "decimate": (
