@@ -48,6 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+import torchsss.modules.material as material_mod
 from torchsss._checks import (
     check_finite,
     check_int,
@@ -432,11 +433,12 @@ class SurfaceLocal(nn.Module):
     def pair_weights(self, cols: Tensor, distance: Tensor) -> Tensor:
         """:math:`(P, C)` :math:`A_s R_d(d) W_l^b(d)` for the current material.
 
-        Outside autograd the profile is evaluated through a table (:func:`~torchsss.modules.material.bulk_profile`).
+        Outside autograd, for at least :data:`~torchsss.modules.material.BULK_MIN_VALUES` pairs, the profile is
+        evaluated through a table (:func:`~torchsss.modules.material.bulk_profile`); fewer are evaluated directly.
         """
         d = distance.unsqueeze(-1)
         profile = self.material
-        if distance.numel() and not (torch.is_grad_enabled() or is_tracing()):
+        if distance.numel() >= material_mod.BULK_MIN_VALUES and not (torch.is_grad_enabled() or is_tracing()):
             profile = bulk_profile(self.material, float(distance.max()), d.dtype, d.device)
         return self.area[cols].unsqueeze(-1).to(d.dtype) * profile(d) * self.weight(d)
 
