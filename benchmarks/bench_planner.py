@@ -19,6 +19,7 @@ Usage::
 
     python benchmarks/bench_planner.py            # 9 scenes (10-20 minutes)
     python benchmarks/bench_planner.py --quick    # 2 scenes at 48x48
+    python benchmarks/bench_planner.py --set third --name planner_third   # the newest set, not calibrated on
     python benchmarks/bench_planner.py --no-sweep --name planner_hits   # the hit rate only (no trade sweep:
         # the time ratio is then against the reference and the other planned renders of the scene; ~30 min)
 """
@@ -69,7 +70,8 @@ def make_scene(name: str, mesh: str, size: float, material: str, light: str, res
 
 
 #: The verification scenes (name: make_scene's arguments). The second run's nine scenes
-#: (``results/planner_v2_rows.json``) joined the calibration set of the splat error model; these are new.
+#: (``results/planner_v2_rows.json``) joined the calibration set of the splat error model; these were new until
+#: 2026-11-27, when their rows (``results/planner_v3_rows.json``) joined it too (see :data:`THIRD`).
 VERIFICATION = {
     "sphere 20 mm potato back": ("sphere", 20, "potato", "back", 128),
     "torus 12 mm wholemilk side": ("torus", 12, "wholemilk", "side", 256),
@@ -83,6 +85,7 @@ VERIFICATION = {
 }
 #: A second set of new scenes (``--set fresh``, first run 2026-11-27 after the reference's shadow-edge refinement;
 #: no planner constant was refitted since :data:`VERIFICATION` was first run).
+#: Calibration scenes since (``results/planner_v4_rows.json``).
 FRESH = {
     "sphere 12 mm marble side": ("sphere", 12, "marble", "side", 256),
     "torus 25 mm apple back": ("torus", 25, "apple", "back", 128),
@@ -95,20 +98,37 @@ FRESH = {
     "torus 8 mm potato side": ("torus", 8, "potato", "side", 256),
 }
 
+#: A third set of new scenes (``--set third``, first run 2026-11-27 after the reference's error model became its
+#: sources' density and splat's aliasing learned the channels' brightness; the scenes of :data:`VERIFICATION` and
+#: :data:`FRESH` had joined the calibration set of both).
+THIRD = {
+    "spot 12 mm marble back": ("spot", 12, "marble", "back", 256),
+    "sphere 40 mm ketchup front": ("sphere", 40, "ketchup", "front", 128),
+    "torus 20 mm skin1 side": ("torus", 20, "skin1", "side", 128),
+    "teapot 60 mm skimmilk back": ("teapot", 60, "skimmilk", "back", 128),
+    "bunny 10 mm cream front": ("bunny", 10, "cream", "front", 128, 30000),
+    "slab 10 mm apple back": ("slab", 10, "apple", "back", 256),
+    "igea 60 mm chicken2 side": ("igea", 60, "chicken2", "side", 128, 40000),
+    "sphere 25 mm skin2 side": ("sphere", 25, "skin2", "side", 128),
+    "torus 40 mm wholemilk front": ("torus", 40, "wholemilk", "front", 128),
+}
+SETS = {"main": VERIFICATION, "fresh": FRESH, "third": THIRD}
+
 
 def scenes(quick: bool, which: str = "main") -> list[Scene]:
-    """The verification scenes: :data:`VERIFICATION`, or :data:`FRESH` (``which="fresh"``), where they load.
+    """The verification scenes of a set (:data:`SETS`: ``"main"``, ``"fresh"``, ``"third"``), where they load.
 
     The shared meshes' scenes only where ``../shared`` is here.
 
-    None of them is a calibration scene (``bench_trade.calibration_scenes`` and those of
-    ``results/planner_v1_rows.json`` and ``results/planner_v2_rows.json``).
+    :data:`THIRD`'s scenes are none of the calibration scenes (``bench_trade.calibration_scenes`` and those of
+    ``results/planner_v1_rows.json`` to ``planner_v4_rows.json``); :data:`VERIFICATION` and :data:`FRESH` are
+    ``planner_v3_rows.json`` and ``planner_v4_rows.json`` (calibration scenes since 2026-11-27).
     """
     if quick:
         return [make_scene("sphere 10 mm apple front", "sphere", 10, "apple", "front", 48),
                 make_scene("torus 30 mm ketchup side", "torus", 30, "ketchup", "side", 48)]
     out = []
-    for name, spec in (FRESH if which == "fresh" else VERIFICATION).items():
+    for name, spec in SETS[which].items():
         try:
             out.append(make_scene(name, *spec))
         except ValueError:  # a shared mesh that is not here
@@ -131,8 +151,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", default=None, help="run the scenes whose names contain one of these")
     parser.add_argument("--merge", type=Path, default=None,
                         help="a JSON list of verification records of an earlier run to merge with this run's")
-    parser.add_argument("--set", choices=("main", "fresh"), default="main",
-                        help="the scene set: VERIFICATION (main) or FRESH (a second set of new scenes)")
+    parser.add_argument("--set", choices=tuple(SETS), default="main",
+                        help="the scene set: VERIFICATION (main), FRESH or THIRD (the newest, not calibrated on)")
     parser.add_argument("--no-sweep", action="store_true",
                         help="skip the trade sweep: hit rate only (time ratio against the truth and the plans)")
     args = parser.parse_args()

@@ -43,7 +43,7 @@ sys.path.insert(0, str(HERE))
 from bench_trade import calibration_scenes, scene_key  # noqa: E402
 
 ERROR_KEYS = {
-    "reference": ["ref_err_h", "ref_err_eps"],
+    "reference": ["ref_err_floor", "ref_err_n"],
     "splat": ["splat_floor", "splat_trunc", "splat_alias", "splat_u_floor", "splat_u_trunc", "splat_u_alias",
               "splat_q_depth"],
     "icdf": ["icdf_a", "icdf_p", "icdf_floor", "icdf_u", "icdf_q_depth"],
@@ -102,9 +102,11 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
 
 
 #: Error rows of earlier verification runs whose scenes joined the calibration set: the first run's three scenes
-#: (every method), the second run's nine (2026-11-26; the splat error model was refitted with them on 2026-11-27,
-#: the other methods' constants predate them).
-VERIFICATION_ROWS = ("planner_v1_rows.json", "planner_v2_rows.json")
+#: (every method), the second run's nine (2026-11-26; the splat error model was refitted with them on 2026-11-27),
+#: the third and fourth runs' nine each (``bench_planner.VERIFICATION`` and ``FRESH``, 2026-11-27: the reference's
+#: and splat's error constants were refitted with them; the other methods' constants predate them).
+VERIFICATION_ROWS = ("planner_v1_rows.json", "planner_v2_rows.json", "planner_v3_rows.json",
+                     "planner_v4_rows.json")
 
 
 def _methods() -> list[str]:
@@ -125,6 +127,11 @@ def _methods() -> list[str]:
 #: The trade rows are measured warm: the truth render compiles the fused pair sum first, and a row's frame time is
 #: the median of its frames (a hybrid row's split-kernel compile falls in its first frame).
 WARM = frozenset({"plain", "split"})
+
+
+def _truth(row: dict) -> bool:
+    """A truth render (a calibration trade's reference, or a verification run's ``kind: truth`` row): error 0."""
+    return bool(row.get("truth")) or row.get("kind") == "truth"
 
 
 def _pred(row, facts, scene, model) -> dict:
@@ -148,7 +155,7 @@ def fit(rows, keys: list[str], target: str, asymmetric: bool, base: dict | None 
             if target not in row:
                 continue
             measured = row[target]
-            if row.get("truth"):  # error 0 by definition; its one frame holds the process's cold compile
+            if _truth(row):  # error 0 by definition; its one frame holds the process's cold compile
                 continue
             if target == "rel_rmse" and measured <= 0:
                 continue
@@ -191,19 +198,20 @@ def main() -> None:
             if row["method"] != method:
                 continue
             p = _pred(row, facts, scene, model)
-            if not row.get("truth") and row["rel_rmse"] > ERROR_FLOOR:
+            if not _truth(row) and row["rel_rmse"] > ERROR_FLOOR:
                 ratios["error"].append(max(p["error"], ERROR_FLOOR) / row["rel_rmse"])
             if "frame_s" in row:
                 ratios["frame_s"].append(p["frame_s"] / row["frame_s"])
                 ratios["setup_s"].append(p["setup_s"] / max(row["setup_s"], 1e-3))
-        report[method] = {k: [round(min(v), 3), round(max(v), 3)] for k, v in ratios.items() if v}
-        print(f"{method:10s} predicted/measured (min, max): {report[method]}")
+        report[method] = {k: [round(min(v), 3), round(float(np.median(v)), 3), round(max(v), 3)]
+                          for k, v in ratios.items() if v}
+        print(f"{method:10s} predicted/measured (min, median, max): {report[method]}")
     print("margin: false accepts (predicted * margin <= t < measured) / accepts over the rows and t = 1%, 2%, 5%")
     margins = {}
     for margin in (1.0, 1.1, 1.25, 1.5, 1.75, 2.0):
         bad = acc = 0
         for scene, facts, row in rows:
-            if row.get("truth") or row["method"] not in _methods():
+            if _truth(row) or row["method"] not in _methods():
                 continue
             p = _pred(row, facts, scene, model)["error"]
             for t in (0.01, 0.02, 0.05):
@@ -236,7 +244,7 @@ def cross_validate(rows) -> dict:
         worst = []
         for held in scenes:
             train = [r for r in mine if r[0].name != held]
-            test = [r for r in mine if r[0].name == held and not r[2].get("truth")]
+            test = [r for r in mine if r[0].name == held and not _truth(r[2])]
             if not test or not train:
                 continue
             model = {**MODEL, **fit(train, ERROR_KEYS[method], "rel_rmse", asymmetric=True)}
