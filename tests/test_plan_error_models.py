@@ -4,6 +4,7 @@ against renders and closed forms."""
 import dataclasses
 import itertools
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -11,8 +12,8 @@ import torch
 from torchsss.physics.budget import splat_spacing
 from torchsss.physics.dipole import total_diffuse_reflectance
 from torchsss.physics.materials import Material, preset
-from torchsss.plan import MARGINS, MODEL, REFERENCE_EPS, TRUTH_EPS, SceneFacts, _Profile, predict
-from torchsss.scene import Scene
+from torchsss.plan import MARGINS, MODEL, REFERENCE_EPS, TRUTH_EPS, SceneFacts, _Profile, plan, predict
+from torchsss.scene import Scene, load_scene
 from torchsss.trade import image_error, run_config
 
 
@@ -39,7 +40,7 @@ def test_reference_error_is_zero_with_the_truths_sources_and_grows_with_their_sp
     assert all(errs[a] <= errs[b] + 1e-12 for a, b in itertools.pairwise(order))
     assert errs[-1] > errs[0]
     # closed form where the lattice alias is negligible: floor + err_n (h / h0 - 1)
-    h0 = math.sqrt(f.area_mm2 / f.sources[0])
+    h0 = max(math.sqrt(f.area_mm2 / f.sources[0]), MODEL["ref_base"] * f.spacing_mm)
     prof = _Profile.of(s.material)
     if prof.alias(spacings[-1]) < 1e-6:
         assert errs[-1] == pytest.approx(MODEL["ref_err_floor"] + MODEL["ref_err_n"] * (spacings[-1] / h0 - 1),
@@ -56,6 +57,22 @@ def test_reference_error_is_zero_with_the_truths_sources_and_grows_with_their_sp
         prof.alias(math.sqrt(f.area_mm2 / n)), prof.alias(h0)), rel=1e-9)
     if f.source_deviation_mm and f.source_deviation_mm[i]:
         assert dec - flat == pytest.approx(f.source_deviation_mm[i] / min(f.ell_mm))
+
+
+def test_a_scans_needless_density_is_not_charged_to_its_decimated_sources(shared_dir):
+    """The shared igea at 256 x 256 (268,686 faces, one source each: 0.057 mm apart where skin1 asks for 0.61 mm).
+
+    Against that density every decimated source set looked 3.5-6.6x coarser, and its 2% plan became the full
+    mesh's sources (a 34 s frame predicted, 150 s measured for the truth) where sources from 11,160 faces had
+    measured 0.37%. The truth's spacing counts no finer than ``ref_base`` of the spacing it asks for.
+    """
+    scene = load_scene(Path(__file__).resolve().parents[1] / "examples" / "scenes" / "igea.json")
+    scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=256, height=256))
+    f = SceneFacts.from_scene(scene)
+    assert math.sqrt(f.area_mm2 / f.sources[0]) < MODEL["ref_base"] * f.spacing_mm
+    p = plan(scene, 0.02)
+    assert p.method == "reference" and p.knobs.get("source_faces", f.faces) < f.faces / 10
+    assert p.predicted_error * MARGINS["reference"] <= 0.02
 
 
 @pytest.mark.parametrize("spec", [
