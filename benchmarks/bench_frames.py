@@ -291,7 +291,8 @@ def bench_ops(args, log=print) -> list[dict]:
     return records
 
 
-def main(argv: list[str] | None = None) -> int:
+def make_parser() -> argparse.ArgumentParser:
+    """The command line's options (also the defaults of :func:`bench_scene`'s ``args`` for other benchmarks)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the default scene at 64x64 and small ops")
     parser.add_argument("--out-dir", type=Path, default=RESULTS_DIR)
@@ -310,6 +311,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ops-only", action="store_true")
     parser.add_argument("--merge", action="append", default=[], type=Path,
                         help="results JSON of another run (e.g. frames_cuda.json) whose rows join the Markdown")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = make_parser()
     args = parser.parse_args(argv)
     if args.frames < 2:
         parser.error("--frames: expected >= 2 (one cold frame and at least one warm frame)")

@@ -34,7 +34,7 @@ from torchsss.bench import environment, environment_line, finish_benchmark, mark
 from torchsss.scene import Scene, default_scene_path, load_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_frames import METHODS, bench_scene
+from bench_frames import METHODS, bench_scene, make_parser
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
@@ -114,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     records: list[dict] = []
     for name in args.scenes or list(SPREAD):
         scene = spread_scene(name)
-        ns = argparse.Namespace(device="cpu", quick=False, resolution=scene.camera.width, tolerance=args.tolerance,
-                                frames=1, reference_frames=1, methods=args.methods)
+        # bench_frames' own defaults for every option not set here (one cold frame each, no camera orbit)
+        ns = make_parser().parse_args(["--resolution", str(scene.camera.width), "--tolerance", str(args.tolerance),
+                                       "--frames", "1", "--reference-frames", "1", "--camera-frames", "0",
+                                       *(["--methods", *args.methods] if args.methods else [])])
         print(f"{name}: {scene.mesh} {scene.size_mm} mm {scene.material.name} at {scene.camera.width}^2", flush=True)
         records += bench_scene(name, scene, ns, log=lambda s: print(s, flush=True))
         args.out_dir.mkdir(parents=True, exist_ok=True)
