@@ -771,9 +771,9 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             # and how far the decimated surface strays: the dipole's relative change over a length d is about
             # d / (1/sigma_tr) (not fitted). Even projected, few sources on a coarse mesh miss more than their
             # density says: a side-lit 8 mm potato torus at 256 x 256 from 500 of its 2,304 faces measured 1.28%
-            # where the density alone predicts 0.69%; with this charge 2.12% (at eps 0.3 from the same faces: 1.97%
-            # measured). Conservative on scans (the back-lit 25 mm apple igea from 11,484 and 5,625 faces: 0.43% and
-            # 1.11% measured, 1.08% and 1.88% predicted)
+            # where the density alone predicts 0.31%; with this charge 1.74% (at eps 0.3 from the same faces 1.97%
+            # was measured: under by 12%, though still within a 2% plan). Conservative on scans (the back-lit 25 mm
+            # apple igea from 11,484 and 5,625 faces: 0.43% and 1.11% measured, 1.08% and 1.88% predicted)
             err += facts.source_deviation_mm[REFERENCE_EPS.index(eps)] / min(facts.ell_mm)
         shadow = 0.2 if knobs.get("shadows") == "none" else 1.0
         pair_s, compile_s = _pair_time(px * n, m["ref_t_pair"], m, "plain" in warm)
