@@ -204,6 +204,9 @@ MARGIN = 1.1
 #: reference 1 of 67 at 1.1; Lensch 1 of 8 at 1.1, 0 of 5 at 1.25; results/planner_cv.json). Splat, refitted
 #: 2026-11-27 on 16 scenes: 2 of 120 at 1.1, 1 of 90 at 1.5, none at 1.75.
 MARGINS = {"reference": 1.1, "splat": 1.1, "icdf": 1.75, "hybrid": 1.25, "lensch": 1.25}
+#: The reference's sources per face of a mesh decimated to its spacing (a decimated 81920-face sphere at
+#: 8 A / h^2 faces gave 1.15).
+SOURCES_PER_FACE = 1.2
 #: The truth's tolerance (the reference's default ``eps``).
 TRUTH_EPS = 0.01
 #: The longest edge (in pixel footprints) the decimation rule leaves on a mesh the camera sees.
@@ -357,7 +360,7 @@ class SceneFacts:
         hs = [reference_spacing(prof, mesh.size_mm, e) for e in REFERENCE_EPS]
         sources = tuple(source_count(mesh, h) for h in hs)
         wanted = tuple(min(mesh.num_faces, source_faces(area, h)) for h in hs)
-        decimated = tuple(min(n, int(1.2 * w)) for n, w in zip(sources, wanted))
+        decimated = tuple(min(n, int(SOURCES_PER_FACE * w)) for n, w in zip(sources, wanted))
         dev = {w: surface_deviation(mesh, decimate(mesh, w)) for w in set(wanted) if w * 2 <= mesh.num_faces}
         deviation = tuple(dev.get(w, 0.0) for w in wanted)
         facts = cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
@@ -749,8 +752,8 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         eps = float(knobs.get("eps", TRUTH_EPS))
         n0 = facts.sources[0]
         n = facts.sources[REFERENCE_EPS.index(eps)] if eps in REFERENCE_EPS else n0
-        if knobs.get("source_faces"):  # about 1.2 sources per face of the decimated mesh (``sources_decimated``)
-            n = min(n, int(1.2 * int(knobs["source_faces"])))
+        if knobs.get("source_faces"):  # the decimated mesh's count, as ``sources_decimated``
+            n = min(n, int(SOURCES_PER_FACE * int(knobs["source_faces"])))
         n = sources or n
         h_eff = math.sqrt(facts.area_mm2 / n)
         # the truth's effective spacing, but no finer than a fraction of the spacing it asks for: sources far denser
