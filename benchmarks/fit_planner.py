@@ -46,7 +46,7 @@ ERROR_KEYS = {
     "reference": ["ref_err_floor", "ref_err_n"],
     "splat": ["splat_floor", "splat_trunc", "splat_alias", "splat_u_floor", "splat_u_trunc", "splat_u_alias",
               "splat_q_depth"],
-    "icdf": ["icdf_a", "icdf_p", "icdf_floor", "icdf_u", "icdf_q_depth"],
+    "icdf": ["icdf_a", "icdf_p", "icdf_floor", "icdf_u", "icdf_q_depth", "icdf_q_spread"],
     "hybrid": ["hybrid_a", "hybrid_p", "hybrid_floor", "hybrid_u", "hybrid_u_floor", "hybrid_q_depth"],
     "lensch": ["lensch_floor", "lensch_texel", "lensch_blend"],
 }
@@ -61,7 +61,15 @@ ERROR_FLOOR = 0.003
 #: Weight of an under-predicted error against an over-predicted one.
 UNDER = 10.0
 EXPONENTS = {"splat_u_floor", "splat_u_trunc", "splat_u_alias", "icdf_u", "hybrid_u", "icdf_p", "hybrid_p",
-             "hybrid_u_floor", "splat_q_depth", "icdf_q_depth", "hybrid_q_depth"}
+             "icdf_q_spread", "hybrid_u_floor", "splat_q_depth", "icdf_q_depth", "hybrid_q_depth"}
+
+
+#: Methods whose rows with a scene-level ``decimate`` are left out: the camera saw the decimated mesh, which no plan
+#: of theirs does today (they decimate through ``source_faces``, the camera on the full mesh). Such rows of a back-lit
+#: 20 mm ketchup bunny measured 3.7% at every N (the decimated silhouette), which held the icdf fit's noise term
+#: 3-6x over the measured error on every other back-lit scene; they were the hybrid's only held-out false accepts at
+#: every margin up to 3 (its unsplit rows use the icdf model). Only the icdf constants were fitted since.
+SEEN_FULL = frozenset({"icdf", "hybrid"})
 
 
 def load_rows() -> list[tuple[object, SceneFacts, dict]]:
@@ -77,6 +85,8 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
                 continue
             knobs = dict(row["knobs"])
             dec = knobs.pop("decimate", None)
+            if dec and row["method"] in SEEN_FULL:
+                continue
             out.append((scene, facts, {**row, "knobs": knobs, "decimate": dec}))
         out.append((scene, facts, {"method": "reference", "knobs": {"eps": 0.01}, "decimate": None,
                                    "rel_rmse": 0.0, "setup_s": data["reference"]["setup_s"],
@@ -97,6 +107,8 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
             for row in entry["rows"]:
                 knobs = dict(row["knobs"])
                 dec = knobs.pop("decimate", None)
+                if dec and row["method"] in SEEN_FULL:
+                    continue
                 out.append((scene, facts, {**row, "knobs": knobs, "decimate": dec, "errors_only": True}))
     return out
 

@@ -194,7 +194,12 @@ def test_margins_come_from_cross_validation():
     for method, margin in MARGINS.items():
         assert margin >= MARGIN
         held = cv[method]["margin"]
-        assert held is not None and margin == max(MARGIN, held), (method, margin, held)
+        assert held is not None, method
+        if method in ("icdf", "hybrid"):  # the Monte Carlo estimators: above the 5% rule, at most the no-miss margin
+            assert max(MARGIN, held) <= margin <= cv[method]["margin_no_false_accept"], (method, margin, cv[method])
+        else:
+            assert margin == max(MARGIN, held), (method, margin, held)
+    assert MARGINS["icdf"] == cv["icdf"]["margin_no_false_accept"]
     s = _scene(res=16, light=(-0.3, 0.2, -1.0))
     for method in ("icdf", "hybrid", "splat"):
         p = plan(s, 0.1, methods=[method])
@@ -280,12 +285,12 @@ def test_rule_samples_from_tolerance():
     # not decimated for the atlas (at 16x16 it is, and the decimated mesh's deviation takes its share of the
     # tolerance: tested in test_atlas_methods_charge_their_decimated_meshs_deviation)
     assert detail_faces(SceneFacts.from_scene(s, throughput=False)) is None
-    n = {t: plan(s, t, methods=["icdf"]).knobs["samples"] for t in (0.2, 0.1, 0.05)}
-    assert n[0.2] < n[0.1] < n[0.05]
-    # error ~ N^-0.8: halving the tolerance asks about 2.4x the samples (powers of two)
-    assert 2 <= n[0.05] / n[0.1] <= 4
-    p = plan(s, 0.1, methods=["icdf"])
-    assert p.predicted_error <= 0.1 and "samples" in p.reasons
+    n = {t: plan(s, t, methods=["icdf"]).knobs["samples"] for t in (0.02, 0.01, 0.005)}
+    assert n[0.02] < n[0.01] < n[0.005]
+    # error ~ N^-0.78: halving the tolerance asks about 2.4x the samples (powers of two), more near the floor
+    assert 2 <= n[0.01] / n[0.02] <= 4
+    p = plan(s, 0.01, methods=["icdf"])
+    assert p.predicted_error <= 0.01 and "samples" in p.reasons
 
 
 def test_samples_below_the_floor_plan_the_most_accurate_hybrid():
@@ -599,6 +604,13 @@ def test_cli_plan_and_auto_render(tmp_path, capsys):
     assert main(["render", str(path), "--method", "splat", "--eps", "0.2", "--out", str(tmp_path / "t.exr"),
                  "--no-progress"]) == 0
     assert json.loads((tmp_path / "t.json").read_text())["knobs"]["eps"] == 0.2
+    assert "warning" not in capsys.readouterr().err
+    # a method that cannot be planned within the tolerance renders its most accurate knobs and says so
+    assert main(["render", str(path), "--method", "splat", "--tolerance", "0.001", "--out", str(tmp_path / "w.exr"),
+                 "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: splat: no configuration predicted within 0.1%" in err and "--method auto" in err
+    assert json.loads((tmp_path / "w.json").read_text())["method_plan"]["note"].startswith("no configuration")
 
 
 def test_scene_facts_are_cached_per_scene_and_mesh():

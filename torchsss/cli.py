@@ -533,6 +533,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             pl = summary["plan"]
             print(f"planned for {pl['tolerance']:.2%} over {pl['frames']} frame(s): predicted error "
                   f"{pl['predicted_error']:.2%}; {pl['reasons'].get('method', '')}")
+        note = (summary.get("method_plan") or {}).get("note") or ""
+        if note.startswith("no configuration predicted"):
+            # the method cannot be planned within the tolerance on this scene: say so, not only in the JSON
+            print(f"warning: {summary['method']}: {note}; --method auto plans a method that meets it",
+                  file=sys.stderr)
     if args.command == "profiles":
         if not 0 < args.eps < 1:
             parser.error(f"--eps: expected a value in (0, 1), got {args.eps}")
