@@ -152,8 +152,8 @@ MODEL: dict[str, float] = {
     # error = hypot(floor (hybrid: * u^u_floor), a * [icdf: q^q_spread] * u^u * d^q_depth * (4096 / N)^p).
     # icdf refitted 2026-11-27 (session 10) with the one-sample spread q (SceneFacts.sampling_spread) on the 34
     # scenes' rows less those with a scene-level decimation (fit_planner.SEEN_FULL): predicted/measured 0.74-2.04
-    # (median 1.18) where the constants without q (a 0.143, u 1.57, q_depth 0.278, p 0.802, floor 0.00315) ranged
-    # over 30x and accepted 35 (row, tolerance) pairs at margin 1 against 138 now
+    # (median 1.18) where the constants without q (a 0.143, u 1.57, q_depth 0.278, p 0.802, floor 0.00315) spanned
+    # 0.16-45 (median 1.69) and accepted 35 (row, tolerance) pairs at margin 1 against 138 now
     "icdf_t_pair": 1.9e-7, "icdf_f0": 0.433, "icdf_s0": 0.3, "icdf_s_face": 2.38e-06, "icdf_s_texel": 2.61e-06,
     "icdf_a": 0.00283, "icdf_p": 0.782, "icdf_floor": 0.00197, "icdf_u": 0.385, "icdf_q_depth": 0.0882,
     "icdf_q_spread": 1.5,
