@@ -239,6 +239,14 @@ def test_sampling_spread_grows_with_the_lit_area_against_the_profiles_reach():
                                                                                                       rel=1e-9)
     # nothing to sample (an environment is smooth over the surface and not counted): 1
     assert sampling_spread(mesh, mat, [EnvironmentLight.uniform(1.0)], eye) == 1.0
+    # typed errors for bad input, naming the argument
+    with pytest.raises(TypeError, match="mesh"):
+        sampling_spread(None, mat, full, eye)
+    with pytest.raises(TypeError, match="profile"):
+        sampling_spread(mesh, "skin1", full, eye)
+    for bad in ((0.0, 0.0), (0.0, math.nan, 1.0), "eye"):
+        with pytest.raises(ValueError, match="eye"):
+            sampling_spread(mesh, mat, full, bad)
 
 
 def test_icdf_prediction_tracks_its_measured_error_on_a_rim_lit_slab():

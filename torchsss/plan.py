@@ -81,7 +81,7 @@ from torchsss.geometry.lensch import (
     throughput_cut,
 )
 from torchsss.geometry.lights import incident_light
-from torchsss.geometry.mesh import CREASE_DEG, Mesh, decimate, surface_deviation
+from torchsss.geometry.mesh import CREASE_DEG, Mesh, check_mesh, decimate, surface_deviation
 from torchsss.geometry.sampling import faces_for_spacing
 from torchsss.modules.material import bulk_profile, material_module
 from torchsss.ops.fused import compile_policy, is_warm
@@ -481,6 +481,28 @@ def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
     return num / den if den > 0 else 0.0
 
 
+def _face_irradiance(v: torch.Tensor, f: torch.Tensor, lights: Sequence):
+    """Per face: area, unit normal, centroid and the unshadowed irradiance per channel at the centroid.
+
+    ``v`` :math:`(V, 3)` float64 vertices (mm), ``f`` :math:`(F, 3)` faces -> area :math:`(F,)`, normal and
+    centroid :math:`(F, 3)`, irradiance through the face's normal :math:`(F, 3)` (point, spot and directional
+    lights; environments are smooth over the surface and skipped).
+    """
+    tri = v[f]
+    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    area = 0.5 * cross.norm(dim=-1)
+    normal = cross / (2.0 * area.clamp_min(1e-300)).unsqueeze(-1)
+    centroid = tri.mean(dim=1)
+    e = torch.zeros(f.shape[0], 3, dtype=v.dtype, device=v.device)
+    for light in lights:
+        try:
+            to_light, _, e_perp = incident_light(light, centroid.unsqueeze(0))
+        except TypeError:  # an environment: smooth over the surface
+            continue
+        e = e + (normal * to_light[0]).sum(-1, keepdim=True).clamp_min(0.0) * e_perp[0]
+    return area, normal, centroid, e
+
+
 def irradiance_detail(mesh: Mesh, lights: Sequence) -> float:
     """The direct irradiance's relative detail where creases meet, at the scale of the vertex hats, in [0, 1].
 
@@ -502,18 +524,8 @@ def irradiance_detail(mesh: Mesh, lights: Sequence) -> float:
     """
     v = mesh.vertices.detach().double()
     f = mesh.faces
-    tri = v[f]
-    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
-    area = 0.5 * cross.norm(dim=-1)
-    normal = cross / (2.0 * area.clamp_min(1e-300)).unsqueeze(-1)
-    centroid = tri.mean(dim=1)
-    e = torch.zeros(f.shape[0], dtype=torch.float64, device=v.device)
-    for light in lights:
-        try:
-            to_light, _, e_perp = incident_light(light, centroid.unsqueeze(0))
-        except TypeError:  # an environment: smooth over the surface
-            continue
-        e = e + (normal * to_light[0]).sum(-1).clamp_min(0.0) * e_perp[0].sum(-1)
+    area, normal, _, e = _face_irradiance(v, f, lights)
+    e = e.sum(-1)
     total = float((area * e * e).sum())
     if total <= 0.0:
         return 0.0
@@ -583,6 +595,10 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float])
     Returns:
         The relative standard deviation of one sample (>= 0).
 
+    Raises:
+        TypeError: ``mesh`` not a Mesh, ``profile`` not callable.
+        ValueError: ``eye`` not three finite numbers.
+
     Examples:
         >>> from torchsss.geometry import DirectionalLight, sphere
         >>> from torchsss.modules import DipoleMaterial
@@ -591,22 +607,20 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float])
         >>> 1.0 < q < 20.0
         True
     """
+    mesh = check_mesh(mesh)
+    if not callable(profile):
+        raise TypeError(f"profile: expected a callable profile (distances -> R_d), got {type(profile).__name__}")
+    try:
+        eye = [float(x) for x in eye]
+    except (TypeError, ValueError):
+        eye = None
+    if eye is None or len(eye) != 3 or not all(math.isfinite(x) for x in eye):
+        raise ValueError("eye: expected the camera's position as three finite numbers (mm)")
     m = mesh.with_dtype(torch.float64)
     if m.num_faces > SPREAD_FACES:
         m = _source_mesh(mesh, SPREAD_FACES).with_dtype(torch.float64)
     v, f = m.vertices.detach(), m.faces
-    tri = v[f]
-    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
-    area = 0.5 * cross.norm(dim=-1)
-    normal = cross / (2.0 * area.clamp_min(1e-300)).unsqueeze(-1)
-    centroid = tri.mean(dim=1)
-    e = torch.zeros(f.shape[0], 3, dtype=torch.float64, device=v.device)
-    for light in lights:
-        try:
-            to_light, _, e_perp = incident_light(light, centroid.unsqueeze(0))
-        except TypeError:  # an environment: smooth over the surface
-            continue
-        e = e + (normal * to_light[0]).sum(-1, keepdim=True).clamp_min(0.0) * e_perp[0]
+    area, normal, centroid, e = _face_irradiance(v, f, lights)
     view = torch.tensor([float(x) for x in eye], dtype=torch.float64, device=v.device) - centroid
     dist = view.norm(dim=-1).clamp_min(1e-9)
     cos = (normal * view).sum(-1) / dist
