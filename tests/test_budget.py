@@ -169,3 +169,18 @@ def test_splat_spacing_for_several_eps_is_each_one():
         splat_spacing(sa, ss, eta, [0.01, 1.5])
     with pytest.raises(TypeError, match="eps"):
         splat_spacing(sa, ss, eta, [0.01, "a"])
+
+
+def test_budget_on_the_materials_device(device):
+    """The budget's bisections run where the material lives (a CUDA material gave a device mismatch) and agree."""
+    sa, ss, eta = _mat("skin1")
+    cpu = (r_max(sa, ss, eta, 0.01), splat_spacing(sa, ss, eta, 0.01), splat_spacing(sa, ss, eta, [0.003, 0.01]),
+           profile_tail_fraction(torch.tensor(2.0), sa, ss, eta))
+    sa_d, ss_d = sa.to(device), ss.to(device)
+    eta_d = torch.as_tensor(eta, dtype=sa.dtype, device=device)
+    on = (r_max(sa_d, ss_d, eta_d, 0.01), splat_spacing(sa_d, ss_d, eta_d, 0.01),
+          splat_spacing(sa_d, ss_d, eta_d, [0.003, 0.01]),
+          profile_tail_fraction(torch.tensor(2.0, device=device), sa_d, ss_d, eta_d))
+    for a, b in zip(cpu, on):
+        assert b.device.type == device.type
+        torch.testing.assert_close(b.cpu(), a, rtol=1e-6, atol=0)

@@ -193,7 +193,7 @@ def splat_spacing(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01) -> Tensor:
         values = [_check_eps(eps)]
     sa, ss, et, out_dtype = _material64(sigma_a, sigma_s_prime, eta)
     terms = dipole_terms(sa, ss, et)
-    target = torch.tensor(values, dtype=torch.float64).reshape(-1, *([1] * sa.dim()))
+    target = torch.tensor(values, dtype=torch.float64, device=sa.device).reshape(-1, *([1] * sa.dim()))
 
     def alias(h: Tensor) -> Tensor:
         return splat_alias_error(h, sa, ss, et)
