@@ -34,6 +34,57 @@ def test_ball_pairs_against_a_loop():
     assert r0.numel() == 0 and d0.dtype == F64
 
 
+@pytest.mark.parametrize("method", ["kdtree", "grid"])
+def test_ball_pairs_paths_against_a_loop(method, device):
+    """Both paths (and "auto" on every device) list the loop's pairs, sorted by receiver, with its distances."""
+    gen = torch.Generator().manual_seed(1)
+    rec = (torch.rand(60, 3, generator=gen, dtype=F64) * torch.tensor([10.0, 3.0, 0.5], dtype=F64)).to(device)
+    src = (torch.rand(90, 3, generator=gen, dtype=F64) * torch.tensor([10.0, 3.0, 0.5], dtype=F64)).to(device)
+    src[5] = rec[3]  # a coincident pair (distance 0) and a pair exactly at the radius
+    rec[4] = torch.tensor([2.0, 1.0, 0.25], dtype=F64, device=device)  # exact in float32: distance 1.25 exactly
+    src[6] = torch.tensor([3.25, 1.0, 0.25], dtype=F64, device=device)
+    for meth in (method, "auto"):
+        rows, cols, dist = ball_pairs(rec.float(), src.float(), 1.25, method=meth)
+        assert rows.device.type == device.type and dist.dtype == torch.float32
+        got = {(int(i), int(j)): float(d) for i, j, d in zip(rows.cpu(), cols.cpu(), dist.cpu())}
+        want32 = {(i, j) for i in range(60) for j in range(90)
+                  if float((rec[i].float().double() - src[j].float().double()).norm()) <= 1.25}
+        assert got.keys() == want32 and (3, 5) in got and (4, 6) in got and len(got) > 100
+        assert max(abs(got[k] - float((rec[k[0]] - src[k[1]]).norm())) for k in got) < 1e-5
+        assert bool((rows[1:] >= rows[:-1]).all())
+    # extremes: no receivers, no sources, radius 0, every point in one place, a radius far below the extent
+    e = torch.zeros(0, 3, dtype=F64, device=device)
+    assert ball_pairs(e, src, 1.0, method=method)[0].numel() == 0
+    assert ball_pairs(rec, e, 1.0, method=method)[0].numel() == 0
+    r0, c0, _ = ball_pairs(rec, src, 0.0, method=method)
+    assert (r0.tolist(), c0.tolist()) == ([3], [5])
+    same = torch.ones(4, 3, dtype=F64, device=device)
+    assert ball_pairs(same, same, 0.0, method=method)[0].numel() == 16
+    far = torch.tensor([[0.0, 0, 0], [1e6, 0, 0]], dtype=F64, device=device)
+    rows, cols, _ = ball_pairs(far, far, 1e-3, method=method)
+    assert (rows.tolist(), cols.tolist()) == ([0, 1], [0, 1])
+
+
+def test_ball_pairs_grid_blocks_and_refusal(monkeypatch):
+    """The grid path lists the same pairs in blocks of any size, and refuses too many pairs with a typed error."""
+    import torchsss.geometry.neighbours as nb
+
+    gen = torch.Generator().manual_seed(2)
+    rec = torch.rand(300, 3, generator=gen, dtype=F64) * 6.0
+    src = torch.rand(400, 3, generator=gen, dtype=F64) * 6.0
+    whole = ball_pairs(rec, src, 1.5, method="grid")
+    monkeypatch.setattr(nb, "GRID_BLOCK", 50)  # fewer candidates than one receiver has: a block of one receiver
+    blocks = ball_pairs(rec, src, 1.5, method="grid")
+    for a, b in zip(whole, blocks):
+        assert torch.equal(a, b)
+    tree = ball_pairs(rec, src, 1.5, method="kdtree")
+    assert whole[0].numel() == tree[0].numel() > 1000
+    with pytest.raises(ValueError, match="max_pairs: expected at most 100 pairs"):
+        ball_pairs(rec, src, 1.5, max_pairs=100, method="grid")
+    with pytest.raises(ValueError, match="method: expected one of"):
+        ball_pairs(rec, src, 1.5, method="octree")
+
+
 def test_ball_pairs_errors():
     x = torch.zeros(3, 3)
     with pytest.raises(TypeError, match="receivers: expected a floating tensor"):
