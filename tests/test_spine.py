@@ -167,3 +167,46 @@ def test_irradiance_atlas_module_reads_eta_from_the_material():
     fixed = IrradianceAtlas.from_atlas(atlas, 1.6)(light, torch.ones(1, 3))
     torch.testing.assert_close(e16, fixed.to(e16.dtype), rtol=1e-6, atol=1e-9)
     assert float((e13 - e16).abs().max()) > 1e-3
+
+
+def test_render_device_is_checked_and_followed(tmp_path, capsys):
+    """``device``: the CPU renders as before; an unknown or absent device is a typed error naming the argument."""
+    from torchsss.registry import build_scene, check_device
+
+    scene = Scene.from_dict(SCENE)
+    assert check_device("cpu") == torch.device("cpu") and check_device(torch.device("cpu")).type == "cpu"
+    with pytest.raises(TypeError, match=r"device: expected a str or torch\.device"):
+        check_device(0)
+    with pytest.raises(ValueError, match="device: expected a torch device"):
+        check_device("gpu7")
+    with pytest.raises(ValueError, match="device: expected 'cpu' or 'cuda'"):
+        check_device("meta")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"device: expected an available device, got 'cuda'"):
+            build_scene(scene, "splat", device="cuda")
+    a = render_scene(scene, "splat", device="cpu", grid=24)
+    b = render_scene(scene, "splat", grid=24)
+    assert a.radiance.device.type == "cpu" and torch.equal(a.radiance, b.radiance)
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({**SCENE, "material": "skin1"}))
+    out = tmp_path / "a.exr"
+    assert main(["render", str(path), "--method", "splat", "--device", "cpu", "--out", str(out), "--no-progress"]) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["device"] == "cpu"
+    with pytest.raises(SystemExit) as exc:
+        main(["render", str(path), "--method", "splat", "--device", "gpu7", "--out", str(out), "--no-progress"])
+    assert exc.value.code == 2 and "device: expected a torch device" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
+def test_cli_renders_on_cuda_like_the_cpu(tmp_path):
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({**SCENE, "material": "skin1"}))
+    outs = {}
+    for dev in ("cpu", "cuda"):
+        out = tmp_path / f"{dev}.exr"
+        assert main(["render", str(path), "--method", "splat", "--eps", "0.03", "--device", dev, "--out", str(out),
+                     "--no-progress"]) == 0
+        outs[dev] = json.loads(out.with_suffix(".json").read_text())
+    assert outs["cuda"]["device"].startswith("cuda")
+    for a, b in zip(outs["cpu"]["mean_radiance_covered"], outs["cuda"]["mean_radiance_covered"]):
+        assert abs(a - b) <= 1e-4 * abs(a)

@@ -37,7 +37,7 @@ from torchsss.physics import (
 )
 from torchsss.physics.materials import PROFILES
 from torchsss.plan import Plan, plan, plan_method
-from torchsss.registry import METHODS, render_scene
+from torchsss.registry import METHODS, check_device, render_scene
 from torchsss.scene import Scene, default_scene_path, load_scene
 from torchsss.trade import trade, write_trade
 
@@ -159,7 +159,7 @@ def output_paths(out: Path) -> tuple[Path, Path, Path]:
 def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torch.dtype = torch.float32,
            resolution: tuple[int, int] | None = None, frames: int = 1, profile: str | None = None,
            spp: int | None = None, subpixel: str | None = None, exposure_ev: float = 0.0, tolerance: float = 0.02,
-           explicit: dict | None = None, save_gbuffers: Path | None = None) -> dict:
+           explicit: dict | None = None, save_gbuffers: Path | None = None, device: str = "cpu") -> dict:
     """Render ``scene_arg`` (a JSON path, or ``default`` for the shipped scene) and write EXR, PNG and JSON.
 
     ``out`` is the EXR or the PNG path (:func:`output_paths`); the other image (the PNG is tone-mapped) and the
@@ -185,9 +185,17 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
 
     ``save_gbuffers`` (splat and lensch): also write the first frame's G-buffers and its exported ONNX frame graph to
     that ``.npz`` (:func:`torchsss.export.frames.save_scene_gbuffers`; ``export/ort_render.py`` renders it).
+
+    ``device`` (``"cpu"`` or ``"cuda"``; :func:`~torchsss.registry.check_device`): where the method is built and the
+    frames render, for a single-object scene. The planner's times are the CPU's (its calibration); on a GPU the
+    ranking of methods differs (the README's GPU table).
     """
     exr, png, json_path = output_paths(out)
+    dev = check_device(device)
     path, scene = _scene(scene_arg, resolution)
+    if dev.type != "cpu" and (scene.objects or save_gbuffers is not None):
+        raise ValueError(f"device: expected 'cpu' for a scene of several objects or with --save-gbuffers, got "
+                         f"{device!r}")
     upsampling = (not scene.objects and scene.caustics is None and method != "caustics" and save_gbuffers is None
                   and not options.get("specular"))
     if subpixel is None:
@@ -228,10 +236,13 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
                 scene = dataclasses.replace(scene, decimate=int(decimate))
             method_note = {"knobs": knobs, "note": note}
             options = {**options, **method_knobs(method, explicit, knobs)}
-    result = render_scene(scene, method, dtype=dtype, frames=frames, spp=spp, subpixel=subpixel, **options)
+    result = render_scene(scene, method, dtype=dtype, frames=frames, spp=spp, subpixel=subpixel, device=dev,
+                          **options)
+    result = dataclasses.replace(result, radiance=result.radiance.detach().cpu(),  # a CUDA render: write from the host
+                                 radiosity=result.radiosity.detach().cpu(), mask=result.mask.cpu())
     seconds = time.perf_counter() - t0
     exr.parent.mkdir(parents=True, exist_ok=True)
-    image = result.radiance[0].detach().float()
+    image = result.radiance[0].float()
     write_exr(exr, image)
     white = None
     if method == "caustics":  # high dynamic range: floor at the key, the caustic up to the white point
@@ -247,7 +258,8 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
         what = {"mesh": scene.mesh, "size_mm": scene.size_mm, "material": scene.material.to_json()}
     st = result.stats
     summary = {"scene": str(path), "method": method, **what, "width": scene.camera.width,
-               "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "seconds": seconds,
+               "height": scene.camera.height, "dtype": str(dtype).replace("torch.", ""), "device": str(dev),
+               "seconds": seconds,
                "setup_s": st.get("setup_s"), "frame_s": st.get("frame_s"), "frame_median_s": st.get("frame_median_s"),
                "fps": st.get("fps"), "frames": frames, "knobs": jsonable(st.get("knobs", {})),
                "options": {k: v for k, v in options.items() if k != "progress"},
@@ -421,6 +433,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                        help="output EXR or PNG (the other image and the JSON beside it)")
     p_ren.add_argument("--resolution", type=_resolution, default=None, help="override the camera, e.g. 128x128")
     p_ren.add_argument("--float64", action="store_true", help="integrate in float64")
+    p_ren.add_argument("--device", default="cpu",
+                       help="torch device of the build and the frames, e.g. cuda (default cpu; single-object scenes; "
+                            "the planner's times are the CPU's)")
     _knob_arguments(p_ren)
     p_ren.add_argument("--specular", action="store_true",
                        help="add the boundary's GGX specular highlights (off: subsurface transport alone)")
@@ -511,7 +526,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                              frames=args.frames, profile=args.profile, spp=args.spp, subpixel=args.subpixel,
                              exposure_ev=args.exposure,
                              tolerance=0.02 if args.tolerance is None else args.tolerance, explicit=explicit,
-                             save_gbuffers=args.save_gbuffers)
+                             save_gbuffers=args.save_gbuffers, device=args.device)
         except (ValueError, TypeError) as err:
             parser.exit(2, f"torchsss render: error: {err}\n")
         st = summary["stats"]

@@ -34,8 +34,8 @@ from torchsss.pipelines import (
 from torchsss.pipelines.renderer import box_downsample, supersample_camera
 from torchsss.scene import Scene
 
-__all__ = ["ENVIRONMENT_METHODS", "METHODS", "OBJECT_METHODS", "build_scene", "orbit_lights", "render_scene",
-           "scene_knobs"]
+__all__ = ["ENVIRONMENT_METHODS", "METHODS", "OBJECT_METHODS", "build_scene", "check_device", "orbit_lights",
+           "render_scene", "scene_knobs"]
 
 #: Every method, by name (the renderer classes of :func:`torchsss.pipelines.build`).
 METHODS = RENDERERS
@@ -81,9 +81,37 @@ def _single(scene: Scene, dtype: torch.dtype) -> tuple[Mesh, object]:
     return scene.load_mesh(dtype=dtype), scene.material
 
 
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a :class:`torch.device` that this process can use (the renderers follow their mesh's device).
+
+    Raises:
+        TypeError: not a string or a device.
+        ValueError: an unknown device, or an accelerator this process does not have (named).
+
+    Examples:
+        >>> check_device("cpu")
+        device(type='cpu')
+    """
+    if not isinstance(device, (str, torch.device)):
+        raise TypeError(f"device: expected a str or torch.device, got {type(device).__name__}")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device: expected a torch device such as 'cpu' or 'cuda', got {device!r}") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: expected an available device, got {device!r} (torch.cuda.is_available() is "
+                         f"False in this process)")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected 'cpu' or 'cuda', got {device!r}")
+    return dev
+
+
 def build_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,
-                **knobs) -> Renderer:
+                device: str | torch.device = "cpu", **knobs) -> Renderer:
     """Load a single-object scene's mesh and build ``method``'s renderer (knobs override the scene's).
+
+    ``device``: where the renderer is built and renders (its mesh's device; the CPU-only setup steps, xatlas,
+    embree and scipy, run on CPU copies); :func:`check_device`.
 
     Examples:
         >>> s = Scene.from_dict({"mesh": "sphere", "size_mm": 20, "material": "skin1",
@@ -97,9 +125,10 @@ def build_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype =
     if len(scene.objects) > 1:
         raise ValueError(f"scene: expected a single-object scene for build_scene, got {len(scene.objects)} objects "
                          "(render it with render_scene)")
+    dev = check_device(device)
     mesh, material = _single(scene, dtype)
     knobs = {**scene_knobs(scene, method), **knobs}
-    return build(method, mesh, None if method == "caustics" else material, dtype=dtype, **knobs)
+    return build(method, mesh.with_device(dev), None if method == "caustics" else material, dtype=dtype, **knobs)
 
 
 def orbit_lights(lights: Sequence[Light], frame: int, frames: int, *, centre: Sequence[float] = (0.0, 0.0, 0.0),
@@ -141,8 +170,12 @@ def orbit_lights(lights: Sequence[Light], frame: int, frames: int, *, centre: Se
 
 
 def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32, frames: int = 1,
-                 progress: bool = False, spp: int = 1, subpixel: str = "exact", **knobs) -> RenderResult:
+                 progress: bool = False, spp: int = 1, subpixel: str = "exact", device: str | torch.device = "cpu",
+                 **knobs) -> RenderResult:
     """Render ``scene`` with ``method``: build once, then ``frames`` frames with the lights orbiting the object.
+
+    ``device`` (:func:`build_scene`): a single-object scene renders there and the result's tensors stay there;
+    a scene of several objects renders on the CPU only.
 
     ``spp`` (a square) renders each frame on a finer pixel grid and box-filters it back
     (:meth:`~torchsss.pipelines.Renderer.render`, ``subpixel`` as there; several objects: ``"exact"`` only): the
@@ -168,6 +201,8 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
     first: RenderResult | None = None
     times: list[float] = []
     if len(scene.objects) > 1:
+        if check_device(device).type != "cpu":
+            raise ValueError(f"device: expected 'cpu' for a scene of several objects, got {device!r}")
         objects = scene.load_objects(dtype=dtype)
         setup_s = 0.0
         for i in range(frames):
@@ -180,7 +215,7 @@ def render_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype 
         first.stats.update(method=method, knobs=dict(knobs))
     else:
         t0 = time.perf_counter()
-        renderer = build_scene(scene, method, dtype=dtype, progress=progress, **knobs)
+        renderer = build_scene(scene, method, dtype=dtype, progress=progress, device=device, **knobs)
         setup_s = time.perf_counter() - t0
         mesh = renderer.mesh
         centre = tuple(float(v) for v in (mesh.vertices.amax(0) + mesh.vertices.amin(0)) / 2)
