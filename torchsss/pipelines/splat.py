@@ -48,6 +48,7 @@ import torch
 from torch import Tensor, nn
 
 from torchsss.geometry.camera import Camera
+from torchsss.geometry.coverage import coverage_scale
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.gbuffer import camera_gbuffer, light_view, view_cosine
 from torchsss.geometry.grazing import split_grazing
@@ -87,6 +88,10 @@ MIN_GRID = 32
 #: The longest light-view footprint (texels) one splat stands for (:func:`~torchsss.geometry.grazing.split_grazing`):
 #: the budget's ``oversample`` 2 assumes 2; 4 keeps most of the gain under grazing light at a fraction of the splats.
 MAX_STRETCH = 4.0
+#: The coverage correction (``coverage=True``) rescales only faces the light meets at most 60 degrees from their
+#: normal: at a smooth object's grazing silhouette it measured worse (the back-lit 15 mm apple torus 0.72% -> 1.32%),
+#: where a rim lit face-on (the side-lit 25 mm cream slab) gains most.
+COVERAGE_MIN_COS = 0.5
 _LIGHT_VIEW_MIN_COS = 1e-2  # light_view's default min_cos: its area is footprint / max(cos, this)
 
 
@@ -122,17 +127,26 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
 
 
 def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int,
-                   max_stretch: float | None = MAX_STRETCH) -> tuple[Tensor, ...]:
+                   max_stretch: float | None = MAX_STRETCH, coverage: bool = True) -> tuple[Tensor, ...]:
     """Splat sources of one light: position (S, 3), flux (S, 3), face id (S,), barycentrics (S, 3).
 
-    A point, spot or directional light: the lit pixels of its light view, each cut into pieces no longer than
-    ``max_stretch`` texels where the light grazes its face (:func:`~torchsss.geometry.grazing.split_grazing`; None:
-    uncut). An environment: the depth-peeled fragments of the three axis views.
+    A point, spot or directional light: the lit pixels of its light view, with ``coverage`` the flux of each large,
+    unoccluded silhouette face's edge pixels rescaled to its exact projected area
+    (:func:`~torchsss.geometry.coverage.coverage_scale`),
+    each cut into pieces no longer than ``max_stretch`` texels where the light grazes its face
+    (:func:`~torchsss.geometry.grazing.split_grazing`; None: uncut). An environment: the depth-peeled fragments of
+    the three axis views.
     """
     if isinstance(light, EnvironmentLight):
         es = environment_splats(mesh, light, n, eta, max_layers=peel_layers)
         return es.position[0], es.flux[0], es.face_id, es.bary
     lv = light_view(mesh, light, n, eta)
+    if coverage:
+        centroid = mesh.triangles().mean(1).unsqueeze(0)
+        facing = (mesh.face_normals * incident_light(light, centroid)[0][0]).sum(-1) >= COVERAGE_MIN_COS
+        scale = coverage_scale(mesh, lv.face_id, lv.camera.view_proj(dtype=torch.float64, device=lv.flux.device),
+                               faces=facing)
+        lv = lv._replace(flux=lv.flux * scale.to(lv.flux.dtype))
     sel = lv.mask[0, 0]
     fid, bary = lv.face_id[0, 0][sel], lv.bary[0].permute(1, 2, 0)[sel]
     if max_stretch is None:
@@ -164,6 +178,9 @@ class SplatRenderer(Renderer):
         max_stretch: the longest light-view footprint, in texels, one splat stands for (:data:`MAX_STRETCH`); longer
             ones (grazing light) are cut into pieces (:func:`~torchsss.geometry.grazing.split_grazing`). None: uncut,
             Shah's one splat per light-view pixel.
+        coverage: rescale the silhouette splats of each large, unoccluded face to its exact projected area in the
+            light view (:func:`~torchsss.geometry.coverage.coverage_scale`): a thin lit feature is otherwise counted
+            a light-view row too wide or too narrow. False: each pixel's own footprint, Shah's splats.
         splat_method: ``"auto"``, ``"window"`` or ``"tile"`` (:func:`~torchsss.ops.splat.splat_radiosity`).
         peel_layers: cap of the depth-peeling layers per axis for environment lights.
         specular: add the shadow-mapped GGX boundary reflection (point, spot and directional lights).
@@ -175,7 +192,7 @@ class SplatRenderer(Renderer):
 
     method = "splat"
     defaults: ClassVar[dict] = dict(eps=0.01, grid=None, max_grid=512, oversample=2.0, max_stretch=MAX_STRETCH,
-                                    splat_method="auto", peel_layers=8, specular=False, roughness=0.3)
+                                    coverage=True, splat_method="auto", peel_layers=8, specular=False, roughness=0.3)
 
     def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
                  irradiance_scale: Tensor | None = None, **kwargs) -> None:
@@ -189,6 +206,8 @@ class SplatRenderer(Renderer):
         ms = k["max_stretch"]
         if ms is not None and (isinstance(ms, bool) or not isinstance(ms, (int, float)) or not 1.0 <= ms < math.inf):
             raise ValueError(f"max_stretch: expected None or a finite number >= 1, got {ms!r}")
+        if not isinstance(k["coverage"], bool):
+            raise TypeError(f"coverage: expected a bool, got {type(k['coverage']).__name__}")
         self.md, self.mi = vertex_modifiers(*self._modifiers, mesh, dtype)
         k["grid"] = splat_grid(mesh, self.material, k["eps"], k["max_grid"], k["oversample"]) if k["grid"] is None \
             else int(k["grid"])
@@ -213,8 +232,9 @@ class SplatRenderer(Renderer):
         splats = 0
         sources, reused = self._per_lights(  # the splats depend on the lights and eta alone: kept while they stay
             "light_sources", lights,
-            lambda: [_light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"]) for light in lights],
-            (n, k["peel_layers"], k["max_stretch"]))
+            lambda: [_light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"], k["coverage"])
+                     for light in lights],
+            (n, k["peel_layers"], k["max_stretch"], k["coverage"]))
         for pos, flux, fid, bary in sources:
             splats += int(pos.shape[0])
             b = b + self.module(pos.unsqueeze(0), flux.unsqueeze(0), gbuf.position, gbuf.mask, view_proj,
