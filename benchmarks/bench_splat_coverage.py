@@ -1,8 +1,9 @@
 """Splat with and without the light view's coverage correction, on the spread and the planner's verification scenes.
 
 Per scene: the reference (truth), then splat at the knobs the planner picks for it at 3% and at two fixed coarser
-budgets (eps 0.03 / oversample 2, eps 0.01 / oversample 1), each with ``coverage=True`` (each large, unoccluded
-face's splats rescaled to its exact projected area, :func:`torchsss.geometry.coverage.coverage_factors`) and
+budgets (eps 0.03 / oversample 2, eps 0.01 / oversample 1), each with ``coverage=True`` (the light view's silhouette
+pixels rescaled so that each run of faces there sums to its exact projected area,
+:func:`torchsss.geometry.coverage.coverage_scale`) and
 ``coverage=False`` (each pixel's own footprint, as before 2026-11-27). Relative RMSE against the reference and the
 ratio of the image means. Results: results/splat_coverage.{json,md}.
 

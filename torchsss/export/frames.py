@@ -145,7 +145,7 @@ def frame_inputs(renderer, lights, camera) -> tuple[nn.Module, dict[str, Tensor]
             if any(m is not None for m in (renderer.md, renderer.mi)):
                 raise ValueError("distance_scale/irradiance_scale: expected none for --save-gbuffers, got modifiers")
             srcs = [_light_sources(mesh, light, renderer.knobs["grid"], eta, renderer.knobs["peel_layers"],
-                                   renderer.knobs["max_stretch"]) for light in lights]
+                                   renderer.knobs["max_stretch"], renderer.knobs["coverage"]) for light in lights]
             pos = torch.cat([s[0] for s in srcs]).unsqueeze(0)
             flux = torch.cat([s[1] for s in srcs]).unsqueeze(0)
             view_proj = camera.view_proj(dtype=torch.float32, device=mesh.vertices.device)

@@ -130,10 +130,10 @@ def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: in
                    max_stretch: float | None = MAX_STRETCH, coverage: bool = True) -> tuple[Tensor, ...]:
     """Splat sources of one light: position (S, 3), flux (S, 3), face id (S,), barycentrics (S, 3).
 
-    A point, spot or directional light: the lit pixels of its light view, with ``coverage`` the flux of each large,
-    unoccluded silhouette face's edge pixels rescaled to its exact projected area
-    (:func:`~torchsss.geometry.coverage.coverage_scale`),
-    each cut into pieces no longer than ``max_stretch`` texels where the light grazes its face
+    A point, spot or directional light: the lit pixels of its light view (with ``coverage``, the silhouette pixels of
+    each unoccluded run of faces the light meets within 60 degrees rescaled to the run's exact projected area,
+    :func:`~torchsss.geometry.coverage.coverage_scale`), each cut into pieces no longer than ``max_stretch`` texels
+    where the light grazes its face
     (:func:`~torchsss.geometry.grazing.split_grazing`; None: uncut). An environment: the depth-peeled fragments of
     the three axis views.
     """
@@ -178,9 +178,10 @@ class SplatRenderer(Renderer):
         max_stretch: the longest light-view footprint, in texels, one splat stands for (:data:`MAX_STRETCH`); longer
             ones (grazing light) are cut into pieces (:func:`~torchsss.geometry.grazing.split_grazing`). None: uncut,
             Shah's one splat per light-view pixel.
-        coverage: rescale the silhouette splats of each large, unoccluded face to its exact projected area in the
-            light view (:func:`~torchsss.geometry.coverage.coverage_scale`): a thin lit feature is otherwise counted
-            a light-view row too wide or too narrow. False: each pixel's own footprint, Shah's splats.
+        coverage: rescale the light view's silhouette splats so that each unoccluded run of faces the light meets
+            within 60 degrees carries its exact projected area (:func:`~torchsss.geometry.coverage.coverage_scale`):
+            a thin lit feature is otherwise counted a light-view row too wide or too narrow (the rim-lit 25 mm cream
+            slab 3.56% -> 1.53%). False: each pixel's own footprint, Shah's splats.
         splat_method: ``"auto"``, ``"window"`` or ``"tile"`` (:func:`~torchsss.ops.splat.splat_radiosity`).
         peel_layers: cap of the depth-peeling layers per axis for environment lights.
         specular: add the shadow-mapped GGX boundary reflection (point, spot and directional lights).
