@@ -46,6 +46,24 @@ def _render(method: str, scene, knobs: dict, spp: int):
     return result, setup, time.perf_counter() - t1
 
 
+def _keep_other_rows(path: Path, rows: list[str]) -> list[str]:
+    """The table's rows: this run's, and the rows of methods it did not render kept from an existing ``path``.
+
+    A run of some methods (``--methods icdf``) must not drop the others' rows; rows stay in the order of
+    :data:`METHODS` (reference first, caustics last).
+    """
+    def key(row: str) -> str:
+        return row.split("|")[1].strip().split(" ")[0]
+
+    mine = {key(r): r for r in rows}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.startswith("| ") and not line.startswith("| method") and key(line) not in mine:
+                mine[key(line)] = line
+    order = ["reference", *METHODS, "caustics"]
+    return [mine[k] for k in order if k in mine] + [r for k, r in mine.items() if k not in order]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("docs/gallery"))
@@ -88,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(f"| caustics (glass sphere) | the scene's | {setup:.1f} s | "
                     f"{float(frame):.2f} s | benchmarks/results/caustics.md | ![caustics](caustics.png) | |")
         print(rows[-1], flush=True)
+    rows = _keep_other_rows(args.out / "gallery.md", rows)
     table = ["| method | knobs (planned at the tolerance) | setup | frame | rel. RMSE vs reference | image | "
              "error x10 |", "|---|---|---:|---:|---:|---|---|", *rows]
     head = (f"Default scene at {args.resolution}x{args.resolution}, {args.spp} sub-pixels per pixel (upsampled), "
