@@ -86,14 +86,20 @@ def test_coverage_scale_makes_large_silhouette_faces_exact_and_leaves_the_rest()
     assert bool((keep == 1).all())
     with pytest.raises(ValueError, match="faces: expected a bool tensor of shape"):
         coverage_scale(big, fid, vp, faces=torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"view_proj: expected a \(4, 4\) tensor"):
+        projected_face_area(big, vp[:3], (64, 64))
+    with pytest.raises(ValueError, match="size: expected"):
+        projected_face_area(big, vp, (64, 0))
+    with pytest.raises(TypeError, match="mesh: expected a Mesh"):
+        projected_face_area("plane", vp, (64, 64))
     with pytest.raises(ValueError, match="face_id: expected shape"):
         coverage_scale(big, fid[0], vp)
     with pytest.raises(ValueError, match="min_pixels"):
         coverage_scale(big, fid, vp, min_pixels=-1.0)
 
 
-@pytest.mark.parametrize("grid", [128, 160, 200])
-def test_splat_sources_carry_a_thin_rims_exact_flux(grid):
+@pytest.mark.parametrize(("grid", "misaligned"), [(128, True), (160, True), (200, False)])
+def test_splat_sources_carry_a_thin_rims_exact_flux(grid, misaligned):
     """A 1.25 mm rim lit face-on (no Fresnel loss at eta 1): its sources' flux is E times its area exactly.
 
     Without the correction the light view counts the rim's 3.4-5.6 pixel rows to whole pixels (the fault behind
@@ -109,7 +115,8 @@ def test_splat_sources_carry_a_thin_rims_exact_flux(grid):
     assert abs(totals[True] - exact) <= 1e-9 * exact
     lv = light_view(mesh, light, grid, 1.0)
     rows = 1.25 / (2.0 * lv.camera.ortho_half_height / grid)
-    if abs(rows - round(rows)) > 0.2:  # the uncorrected count is a whole number of rows
+    assert (abs(rows - round(rows)) > 0.2) == misaligned  # 4.43, 5.54 and 6.93 rows
+    if misaligned:  # the uncorrected count is a whole number of rows
         assert abs(totals[False] - exact) > 0.03 * exact
 
 

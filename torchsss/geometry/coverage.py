@@ -52,11 +52,24 @@ def projected_face_area(mesh: Mesh, view_proj: Tensor, size: tuple[int, int]) ->
         >>> round(a.sum().item(), 6)  # a 10 x 10 mm plane, 3.2 pixels per mm
         1024.0
     """
+    return _face_screen(mesh, view_proj, size)[0]
+
+
+def _face_screen(mesh: Mesh, view_proj: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """Each face's projected area and perimeter in pixels, :math:`(F,)` each (area 0 behind the camera)."""
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"mesh: expected a Mesh, got {type(mesh).__name__}")
+    if not isinstance(view_proj, Tensor) or view_proj.shape != (4, 4):
+        raise ValueError(f"view_proj: expected a (4, 4) tensor, got "
+                         f"{tuple(view_proj.shape) if isinstance(view_proj, Tensor) else type(view_proj).__name__}")
+    if len(size) != 2 or not all(isinstance(n, int) and n > 0 for n in size):
+        raise ValueError(f"size: expected (H, W) positive ints, got {size!r}")
     xy, w = _screen(mesh, view_proj, size)
     tri = xy[mesh.faces]  # (F, 3, 2)
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     area = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).abs()
-    return torch.where((w[mesh.faces] > 0).all(1), area, torch.zeros_like(area))
+    perimeter = (tri - tri.roll(1, 1)).norm(dim=-1).sum(1)
+    return torch.where((w[mesh.faces] > 0).all(1), area, torch.zeros_like(area)), perimeter
 
 
 def _edge_pairs(faces: Tensor) -> Tensor:
@@ -143,10 +156,7 @@ def coverage_scale(mesh: Mesh, face_id: Tensor, view_proj: Tensor, *, min_pixels
     edge = seen & ~(pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:])
     count = torch.bincount(ids[seen], minlength=f).to(torch.float64)
     rim = torch.bincount(ids[edge], minlength=f).to(torch.float64)
-    area = projected_face_area(mesh, view_proj, size).to(count.device)
-    xy, _ = _screen(mesh, view_proj, size)
-    tri = xy[mesh.faces]
-    perimeter = (tri - tri.roll(1, 1)).norm(dim=-1).sum(1).to(count.device)
+    area, perimeter = (t.to(count.device) for t in _face_screen(mesh, view_proj, size))
     ok = (rim > 0) & ((count - area).abs() <= 0.5 * perimeter + 1.0)
     if faces is not None:
         if faces.shape != (f,) or faces.dtype != torch.bool:
