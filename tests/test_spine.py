@@ -171,7 +171,8 @@ def test_irradiance_atlas_module_reads_eta_from_the_material():
 
 def test_render_device_is_checked_and_followed(tmp_path, capsys):
     """``device``: the CPU renders as before; an unknown or absent device is a typed error naming the argument."""
-    from torchsss.registry import build_scene, check_device
+    from torchsss._checks import check_device
+    from torchsss.registry import build_scene
 
     scene = Scene.from_dict(SCENE)
     assert check_device("cpu") == torch.device("cpu") and check_device(torch.device("cpu")).type == "cpu"

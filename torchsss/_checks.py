@@ -20,6 +20,7 @@ __all__ = [
     "as_float_tensor",
     "cast",
     "check_broadcastable",
+    "check_device",
     "check_devices",
     "check_finite",
     "check_finite_inputs",
@@ -342,3 +343,28 @@ def check_shape(x: Tensor, name: str, dims: str, **known: int) -> dict[str, int]
             # int() would specialise a dynamic dimension to a constant while exporting: keep the symbol then
             sizes[dim_name] = size if is_tracing() else int(size)
     return sizes
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """``device`` as a :class:`torch.device` that this process can use (the renderers follow their mesh's device).
+
+    Raises:
+        TypeError: not a string or a device.
+        ValueError: an unknown device, or an accelerator this process does not have (named).
+
+    Examples:
+        >>> check_device("cpu")
+        device(type='cpu')
+    """
+    if not isinstance(device, (str, torch.device)):
+        raise TypeError(f"device: expected a str or torch.device, got {type(device).__name__}")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device: expected a torch device such as 'cpu' or 'cuda', got {device!r}") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device: expected an available device, got {device!r} (torch.cuda.is_available() is "
+                         f"False in this process)")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected 'cpu' or 'cuda', got {device!r}")
+    return dev

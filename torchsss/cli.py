@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from torchsss._checks import check_device
 from torchsss._json import jsonable
 from torchsss.geometry.lensch import THROUGHPUT_THRESHOLD
 from torchsss.io import auto_exposure, key_exposure, tonemap, write_exr, write_png
@@ -37,7 +38,7 @@ from torchsss.physics import (
 )
 from torchsss.physics.materials import PROFILES
 from torchsss.plan import Plan, plan, plan_method
-from torchsss.registry import METHODS, check_device, render_scene
+from torchsss.registry import METHODS, render_scene
 from torchsss.scene import Scene, default_scene_path, load_scene
 from torchsss.trade import trade, write_trade
 
@@ -186,7 +187,7 @@ def render(scene_arg: str, method: str, out: Path, *, options: dict, dtype: torc
     ``save_gbuffers`` (splat and lensch): also write the first frame's G-buffers and its exported ONNX frame graph to
     that ``.npz`` (:func:`torchsss.export.frames.save_scene_gbuffers`; ``export/ort_render.py`` renders it).
 
-    ``device`` (``"cpu"`` or ``"cuda"``; :func:`~torchsss.registry.check_device`): where the method is built and the
+    ``device`` (``"cpu"`` or ``"cuda"``; :func:`~torchsss._checks.check_device`): where the method is built and the
     frames render, for a single-object scene. The planner's times are the CPU's (its calibration); on a GPU the
     ranking of methods differs (the README's GPU table).
     """

@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from torchsss._checks import check_device
 from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.lights import DirectionalLight, Light
 from torchsss.geometry.mesh import Mesh
@@ -34,7 +35,7 @@ from torchsss.pipelines import (
 from torchsss.pipelines.renderer import box_downsample, supersample_camera
 from torchsss.scene import Scene
 
-__all__ = ["ENVIRONMENT_METHODS", "METHODS", "OBJECT_METHODS", "build_scene", "check_device", "orbit_lights",
+__all__ = ["ENVIRONMENT_METHODS", "METHODS", "OBJECT_METHODS", "build_scene", "orbit_lights",
            "render_scene", "scene_knobs"]
 
 #: Every method, by name (the renderer classes of :func:`torchsss.pipelines.build`).
@@ -79,31 +80,6 @@ def _single(scene: Scene, dtype: torch.dtype) -> tuple[Mesh, object]:
         (mesh, material), = scene.load_objects(dtype=dtype)
         return mesh, material
     return scene.load_mesh(dtype=dtype), scene.material
-
-
-def check_device(device: str | torch.device) -> torch.device:
-    """``device`` as a :class:`torch.device` that this process can use (the renderers follow their mesh's device).
-
-    Raises:
-        TypeError: not a string or a device.
-        ValueError: an unknown device, or an accelerator this process does not have (named).
-
-    Examples:
-        >>> check_device("cpu")
-        device(type='cpu')
-    """
-    if not isinstance(device, (str, torch.device)):
-        raise TypeError(f"device: expected a str or torch.device, got {type(device).__name__}")
-    try:
-        dev = torch.device(device)
-    except RuntimeError as err:
-        raise ValueError(f"device: expected a torch device such as 'cpu' or 'cuda', got {device!r}") from err
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device: expected an available device, got {device!r} (torch.cuda.is_available() is "
-                         f"False in this process)")
-    if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"device: expected 'cpu' or 'cuda', got {device!r}")
-    return dev
 
 
 def build_scene(scene: Scene, method: str = "reference", *, dtype: torch.dtype = torch.float32,

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from torchsss.geometry.mesh import Mesh
+from torchsss.geometry.raster import screen_coords
 
 __all__ = ["coverage_scale", "projected_face_area"]
 
@@ -27,12 +28,16 @@ MIN_COVERAGE_PX = 8.0
 
 
 def _screen(mesh: Mesh, view_proj: Tensor, size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """The vertices in pixel units (NDC scaled by half the image; float64) :math:`(V, 2)`, and their clip w."""
+    """The vertices in pixels :math:`(V, 2)` (float64) and their clip w :math:`(V,)`.
+
+    The rasterizer's own projection (:func:`~torchsss.geometry.raster.screen_coords`); a vertex behind the camera is
+    projected through w = 1e-300 (its faces get area 0).
+    """
     v = mesh.vertices.detach().to(torch.float64)
     clip = torch.cat([v, torch.ones_like(v[:, :1])], 1) @ view_proj.to(device=v.device, dtype=torch.float64).T
     w = clip[:, 3]
-    half = torch.tensor([size[1] / 2.0, size[0] / 2.0], dtype=torch.float64, device=v.device)
-    return clip[:, :2] / w.clamp_min(1e-300).unsqueeze(1) * half, w
+    x, y, _ = screen_coords(clip[:, 0], clip[:, 1], clip[:, 2], w.clamp_min(1e-300), size[0], size[1])
+    return torch.stack([x, y], 1), w
 
 
 def projected_face_area(mesh: Mesh, view_proj: Tensor, size: tuple[int, int]) -> Tensor:

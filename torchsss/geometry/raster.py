@@ -142,10 +142,16 @@ def _check_max_candidates(value: object) -> int:
 
 
 # -- geometry helpers -----------------------------------------------------------------------------------------------
-def _screen(x: Tensor, y: Tensor, z: Tensor, w: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
+def screen_coords(x: Tensor, y: Tensor, z: Tensor, w: Tensor, height: int, width: int) -> tuple[Tensor, Tensor, Tensor]:
     """Screen coordinates (x right, y *up*, in pixels) and NDC z of clip-space coordinates (any equal shapes).
 
-    Elementwise, so the coverage pass and the barycentric pass get bitwise equal values for a vertex.
+    Elementwise, so the coverage pass and the barycentric pass get bitwise equal values for a vertex (and
+    :mod:`torchsss.geometry.coverage` measures faces in the same pixels).
+
+    Examples:
+        >>> x, y, _ = screen_coords(torch.tensor(0.5), torch.tensor(-1.0), torch.tensor(0.0), torch.tensor(1.0), 4, 8)
+        >>> float(x), float(y)
+        (6.0, 0.0)
     """
     inv_w = 1.0 / w
     return (x * inv_w + 1.0) * (0.5 * width), (y * inv_w + 1.0) * (0.5 * height), z * inv_w
@@ -274,7 +280,7 @@ def _setup(clip: Tensor, faces: Tensor, height: int, width: int, cull_backfaces:
     nf = faces.shape[0]
     dev = clip.device
     c = clip.to(cdt)
-    xv, yv, zv = _screen(c[..., 0], c[..., 1], c[..., 2], c[..., 3], height, width)  # (B, V)
+    xv, yv, zv = screen_coords(c[..., 0], c[..., 1], c[..., 2], c[..., 3], height, width)  # (B, V)
     clip_depth = bool(((zv < -1.0) | (zv > 1.0)).any())  # conservative: any vertex outside near/far
     sv = torch.stack([xv, yv, zv, c[..., 3]]).view(4, bsz * nv)
     vidx = faces.view(-1)
@@ -568,7 +574,7 @@ def _resolve(clip: Tensor, faces: Tensor, pix: Tensor, fid: Tensor, height: int,
     if bsz > 1:
         vidx = vidx + (b * nv)[:, None]
     tri = clip.reshape(bsz * nv, 4).index_select(0, vidx.view(-1)).to(cdt).view(-1, 3, 4).permute(2, 1, 0)
-    xs, ys, zs = _screen(tri[0], tri[1], tri[2], tri[3], height, width)  # (3, K)
+    xs, ys, zs = screen_coords(tri[0], tri[1], tri[2], tri[3], height, width)  # (3, K)
     area2 = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
     px = c.to(cdt) + 0.5
     py = (height - 0.5) - r.to(cdt)
