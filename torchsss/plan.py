@@ -1448,4 +1448,5 @@ def plan_method(scene: Scene, method: str, tolerance: float = 0.02, frames: int 
     best = min(mine, key=lambda c: c["error"])
     return (dict(best["knobs"]), best.get("decimate"),
             f"no configuration predicted within {100 * tolerance:g}%: the most accurate "
-            f"({best['error']:.2%} predicted)")
+            f"({best['error']:.2%} predicted, {MARGINS.get(method, MARGIN) * best['error']:.2%} with the "
+            f"planner's safety margin {MARGINS.get(method, MARGIN):g})")
