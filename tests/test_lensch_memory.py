@@ -2,6 +2,7 @@
 
 - :class:`LocalResponse` from an atlas relights with half the kernel planes (the symmetric factor of the kernels);
 - :class:`GlobalResponse` keeps its pattern in int32 and only F^T's CSR matrices between frames;
+- :class:`GlobalResponse` with a hat quadrature keeps the hats' moments per vertex and derives each entry's rule;
 - :func:`hat_quadrature` writes its terms straight into their sorted place.
 """
 
@@ -112,3 +113,43 @@ def test_hat_terms_are_sorted_by_entry(small):
     # every term written once in its place: the per-entry sums are the hat's area
     per_entry = torch.zeros(hq.entries.numel(), dtype=torch.float64).index_add_(0, te, hq.weight.double())
     torch.testing.assert_close(per_entry, mesh.vertex_areas[tp.rows[hq.entries]].double(), rtol=1e-10, atol=0)
+
+
+def test_hat_moment_rule_is_derived_from_per_vertex_moments(small):
+    """The module keeps the hats' centroids and covariances, not four numbers per entry, and derives the same rule.
+
+    Against the rule written out from :func:`hat_quadrature`'s per-entry columns (float64), with and without a
+    distance multiplier; the self entries (r = 0 from a hat's own vertex only when the hat is symmetric) and the
+    extremes of :func:`entry_moments` (a coincident vertex and centroid: no direction, all variance transverse).
+    """
+    from torchsss.geometry.lensch import HatMoments, entry_moments
+
+    mesh, atlas = small
+    mat = _material()
+    tp = build_throughput(mesh, mat)
+    hq = hat_quadrature(mesh, tp)
+    n = mesh.num_vertices
+    for md in (None, torch.full((1, 1, *atlas.shape), 1.3, dtype=torch.float64)):
+        glob = GlobalResponse(vertex_weights(mesh, atlas), tp, mat, atlas.valid_mask, hat=hq, distance_scale=md)
+        assert glob.distance is None and glob.source_area is None and glob._h_centroid.shape == (n, 3)
+        assert glob.nnz == tp.rows.numel()
+        # a uniform M_d projects to itself on every vertex with texels (1 on the 6 of 162 without, whose irradiance
+        # is 0 anyway)
+        s = 1.0 if md is None else glob._h_scale[tp.rows]
+        if md is not None:
+            assert int(((glob._h_scale - 1.3).abs() < 1e-9).sum()) >= 0.9 * n
+        r, sr = hq.centroid_distance * s, hq.radial_var.sqrt() * s
+        rt = (hq.centroid_distance**2 + hq.transverse_var).sqrt() * s
+        f = [mat(x[:, None]) for x in (r, r + sr, (r - sr).abs(), rt)]
+        want = tp.source_area[:, None] * (0.5 * (f[1] + f[2]) + f[3] - f[0])
+        with torch.enable_grad():  # the profile's formula, not its table
+            got = glob._moment_rule(0, glob.nnz)
+        torch.testing.assert_close(got.detach(), want, rtol=1e-10, atol=1e-14)
+    moments = HatMoments(torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64),
+                         torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64),
+                         torch.diag(torch.tensor([0.5, 0.25, 0.0], dtype=torch.float64))[None])
+    r, radial, transverse = entry_moments(moments, torch.tensor([0]), torch.tensor([0]))
+    assert float(r) == 0.0 and float(radial) == 0.0 and float(transverse) == 0.75
+    far = HatMoments(moments.vertices * 1e6, moments.centroid * 0, moments.covariance)
+    r, radial, transverse = entry_moments(far, torch.tensor([0]), torch.tensor([0]))
+    assert torch.isfinite(torch.stack([r, radial, transverse])).all() and float(radial + transverse) == 0.75

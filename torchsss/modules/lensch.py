@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from torchsss._checks import check_finite, check_finite_inputs, check_shape, check_tensor, compute_dtype, is_tracing
 from torchsss.geometry.lensch import (
     DenseThroughput,
+    HatMoments,
     HatQuadrature,
     LocalKernelGeometry,
     Throughput,
@@ -33,6 +34,7 @@ from torchsss.geometry.lensch import (
     _check_atlas,
     _check_kernel_size,
     _distance,
+    entry_moments,
 )
 from torchsss.modules.cache import ValueCache, material_key
 from torchsss.modules.material import bulk_profile
@@ -615,11 +617,15 @@ class GlobalResponse(nn.Module):
             self.register_buffer("keep", throughput.keep.clone() if copy else throughput.keep, persistent=False)
             # the kept diagonal entries (vertex ids): their disk integrals replace A_i/3 R_d(0)
             self.register_buffer("diagonal_index", throughput.keep.diagonal().nonzero()[:, 0], persistent=False)
-            for name in ("hat_moments", "hat_entries", "hat_term_entry", "hat_distance", "hat_weight"):
+            for name in ("hat_entries", "hat_term_entry", "hat_distance", "hat_weight", "_h_vertices", "_h_centroid",
+                         "_h_covariance", "_h_area", "_h_scale"):
                 self.register_buffer(name, None, persistent=False)
+            self._hat_d_max = 0.0
             self.pattern = None
             return
-        moments = None
+        geometry = {"_h_vertices": None, "_h_centroid": None, "_h_covariance": None, "_h_area": None,
+                    "_h_scale": None}
+        self._hat_d_max = 0.0
         if hat is not None:
             if not isinstance(hat, HatQuadrature):
                 raise TypeError(f"hat: expected a torchsss.geometry.lensch.HatQuadrature, got {type(hat).__name__}")
@@ -627,33 +633,44 @@ class GlobalResponse(nn.Module):
             if hat.centroid_distance.shape != (nnz,) or (hat.entries.numel() and int(hat.entries.max()) >= nnz):
                 raise ValueError(f"hat: expected the quadrature of this throughput ({nnz} entries), got one of "
                                  f"{hat.centroid_distance.shape[0]}")
-            scale = None if vertex_md is None else vertex_md.to(dist.dtype)
-            # the moment rule's four distances, each times the source's M_d
-            # (written into one (3, nnz) buffer: a list and a stack held them twice)
-            r = hat.centroid_distance.to(dist.dtype)
-            sr = hat.radial_var.to(dist.dtype).sqrt()
-            moments = torch.empty(3, nnz, dtype=dist.dtype, device=dist.device)
-            torch.add(r, sr, out=moments[0])
-            torch.sub(r, sr, out=moments[1]).abs_()
-            torch.sqrt(r * r + hat.transverse_var.to(dist.dtype), out=moments[2])
-            del sr
-            if scale is not None:
-                s_rows = scale[throughput.rows]
-                moments.mul_(s_rows)
-                r = r * s_rows
-                del s_rows
-            dist = r
-            hd = hat.distance.to(dist.dtype)
+            if not isinstance(hat.moments, HatMoments) or hat.moments.vertices.shape != (n, 3):
+                raise ValueError(f"hat: expected the HatMoments of this throughput's {n} vertices (hat_quadrature's "
+                                 f"moments), got {type(hat.moments).__name__}")
+            dt, dev = dist.dtype, dist.device
+            scale = None if vertex_md is None else vertex_md.to(dt)
+            # the moment rule's distance and variances are derived per block of entries from the hats' centroids and
+            # covariances (:func:`entry_moments`) whenever the values are evaluated: three numbers per vertex kept
+            # instead of four per entry (the distance, the two variances, the source area: 97 MB on the default
+            # scene's 6.4M entries at atlas 1024, 135 MB on the 40 mm teapot's 8.4M)
+            area = torch.zeros(n, dtype=dt, device=dev)
+            area[throughput.rows] = throughput.source_area.to(dt)  # every entry of row i holds A_i / 3
+            geometry = {"_h_vertices": hat.moments.vertices.to(dt).clone(),
+                        "_h_centroid": hat.moments.centroid.to(dt).clone(),
+                        "_h_covariance": hat.moments.covariance.to(dt).clone(), "_h_area": area, "_h_scale": scale}
+            # the largest distance the rule evaluates: the range of the profile's table outside autograd
+            moments = HatMoments(geometry["_h_vertices"], geometry["_h_centroid"], geometry["_h_covariance"])
+            for lo in range(0, nnz, 1 << 18):
+                rows_b = throughput.rows[lo:lo + (1 << 18)]
+                r, rv, tv = entry_moments(moments, rows_b, throughput.cols[lo:lo + (1 << 18)])
+                far = torch.maximum(r + rv.sqrt(), (r * r + tv).sqrt())
+                if scale is not None:
+                    far = far * scale[rows_b]
+                self._hat_d_max = max(self._hat_d_max, float(far.max()))
+                del r, rv, tv, far
+            dist = None  # the entries' distances are the rule's (derived)
+            hd = hat.distance.to(dt)
             if scale is not None:  # the source's M_d, as for the sampled entries
                 hd = hd * scale[throughput.rows[hat.entries][hat.term_entry]]
+            self.source_area = None  # per vertex in _h_area
+        for name, value in geometry.items():
+            self.register_buffer(name, value, persistent=False)
         self.register_buffer("distance", dist)
-        self.register_buffer("hat_moments", moments, persistent=False)
         self.register_buffer("hat_entries", None if hat is None else hat.entries.clone(), persistent=False)
         # int32 (index_add takes it; 43 MB less on the default scene's 10.7M terms at atlas 1024), int64 in graphs
         self.register_buffer("hat_term_entry", None if hat is None else hat.term_entry.to(torch.int32),
                              persistent=False)
         self.register_buffer("hat_distance", None if hat is None else hd, persistent=False)
-        hw = None if hat is None else hat.weight.to(dist.dtype)
+        hw = None if hat is None else hat.weight.to(hd.dtype)
         self.register_buffer("hat_weight", hw.clone() if copy and hw is not None and hw is hat.weight else hw,
                              persistent=False)
         # the positions of the diagonal entries: their disk integrals are evaluated there only (one per vertex,
@@ -681,6 +698,11 @@ class GlobalResponse(nn.Module):
                              persistent=False)
         self.pattern = None
         self._csr_cache = ValueCache()
+
+    @property
+    def nnz(self) -> int:
+        """The throughput's kept entries (a dense throughput's kept pairs)."""
+        return int(self.keep.sum()) if self.dense else int(self._p_rows.shape[0])
 
     def _pattern(self) -> SparsePattern:
         """The throughput's :class:`~torchsss.ops.sparse.SparsePattern` (int64, made from the int32 buffers)."""
@@ -735,8 +757,10 @@ class GlobalResponse(nn.Module):
         if self.dense:
             return self._dense_values()
         if self.hat_entries is not None:
-            profile = self._bulk_profile(self.distance, self.hat_moments)
-            vals = self._blocks(lambda lo, hi: self._moment_rule(lo, hi, profile), self.distance.shape[0])
+            profile = self.material
+            if not (torch.is_grad_enabled() or is_tracing() or self.nnz == 0):
+                profile = bulk_profile(self.material, self._hat_d_max, self._h_area.dtype, self._h_area.device)
+            vals = self._blocks(lambda lo, hi: self._moment_rule(lo, hi, profile), self.nnz)
             near = self.hat_values(vals.shape[-1], vals.dtype)
             if vals.requires_grad or near.requires_grad or is_tracing():
                 return vals.index_copy(0, self.hat_entries, near)
@@ -794,11 +818,19 @@ class GlobalResponse(nn.Module):
         """The moment rule of the entries ``lo:hi``, :math:`(hi - lo, C)`.
 
         :math:`A_i/3\\,[\\tfrac12 R(r + \\sigma_r) + \\tfrac12 R(|r - \\sigma_r|) + R(\\sqrt{r^2 + \\sigma_t^2})
-        - R(r)]`.
+        - R(r)]`, with :math:`r`, :math:`\\sigma_r^2`, :math:`\\sigma_t^2` derived from the hats' moments
+        (:func:`~torchsss.geometry.lensch.entry_moments`) and times the source's :math:`M_d`.
         """
         profile = self.material if profile is None else profile
-        f = profile(torch.cat([self.distance[None, lo:hi], self.hat_moments[:, lo:hi]]).unsqueeze(-1))
-        return self.source_area[lo:hi].unsqueeze(-1) * (0.5 * (f[1] + f[2]) + f[3] - f[0])
+        rows = self._p_rows[lo:hi].long()
+        moments = HatMoments(self._h_vertices, self._h_centroid, self._h_covariance)
+        r, radial, transverse = entry_moments(moments, rows, self._p_cols[lo:hi].long())
+        sr = radial.sqrt()
+        d = torch.stack([r, r + sr, (r - sr).abs(), (r * r + transverse).sqrt()])
+        if self._h_scale is not None:  # the source's M_d
+            d = d * self._h_scale[rows]
+        f = profile(d.unsqueeze(-1))
+        return self._h_area[rows].unsqueeze(-1) * (0.5 * (f[1] + f[2]) + f[3] - f[0])
 
     @staticmethod
     def _blocks(fn, n: int) -> Tensor:
@@ -851,13 +883,13 @@ class GlobalResponse(nn.Module):
         if key is not None and not self.dense and self.method in ("auto", "csr") and eg.device.type != "meta":
             # relighting a fixed material: only F^T's CSR matrices are kept (sparse_apply_t's csr path, its values)
             check_tensor(eg, "vertex_irradiance")
-            mats, out_dtype, dtype = self._csr_cache.get((*key, self.distance.device, eg.dtype),
+            mats, out_dtype, dtype = self._csr_cache.get((*key, self.vertex_ids.device, eg.dtype),
                                                          lambda: self._csr(eg.dtype))
             if eg.dim() == 3 and eg.shape[1] == self.num_vertices and eg.shape[2] == len(mats):
                 x = eg.to(dtype)
                 y = torch.stack([mats[ch] @ x[:, :, ch].t() for ch in range(x.shape[-1])], dim=-1)
                 return y.permute(1, 0, 2).to(out_dtype)
-        values = self._cache.get(None if key is None else (*key, self.distance.device), self.throughput_values)
+        values = self._cache.get(None if key is None else (*key, self.vertex_ids.device), self.throughput_values)
         if self.dense:  # B_j = sum_i E_i F_ij per channel: (C, B, N) @ (C, N, N)
             dtype = torch.promote_types(eg.dtype, values.dtype)
             out = torch.bmm(eg.permute(2, 0, 1).to(dtype), values.to(dtype))
