@@ -544,7 +544,9 @@ class GlobalResponse(nn.Module):
         hat: optional :class:`~torchsss.geometry.lensch.HatQuadrature` of a sparse throughput: every entry is
             integrated over the source's hat (its moment rule, and the near entries, the self entries among them,
             term by term, :math:`F_{ij} = \\sum_t w_t R_d(d_t M_{d,i})`) instead of sampled at the source vertex
-            (and the self entries' disk integral); see :func:`~torchsss.geometry.lensch.hat_quadrature`.
+            (and the self entries' disk integral); see :func:`~torchsss.geometry.lensch.hat_quadrature`. The
+            module keeps the hats' moments per vertex (:class:`~torchsss.geometry.lensch.HatMoments`) and derives
+            each entry's rule when the values are evaluated; ``distance`` and ``source_area`` are then None.
         copy: copy the throughput's distances and source areas into the buffers (default); ``False`` takes them
             as they are (the caller must not change them afterwards: :func:`~torchsss.pipelines.build_lensch`
             hands its throughput over).
