@@ -48,6 +48,23 @@ def test_locator_is_exact_against_all_faces():
     torch.testing.assert_close((point - pts[: point.shape[0]]).norm(dim=-1), near.distance)
 
 
+
+def test_locator_blocks_give_the_same_points():
+    """Points are located in blocks (bounded temporaries); any block size gives the same faces, barycentrics and
+    distances as one block, including a last partial block and a block of one point."""
+    coarse = decimate(sphere(10.0, 4, dtype=torch.float64), 300)
+    pts = 12.0 * torch.randn(1001, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    whole = SurfaceLocator(coarse)
+    whole.block_points = 10**6
+    want = whole.locate(pts)
+    for block in (1, 7, 1000):
+        loc = SurfaceLocator(coarse)
+        loc.block_points = block
+        got = loc.locate(pts if block > 1 else pts[:40])
+        n = got.face.shape[0]
+        assert torch.equal(got.face, want.face[:n])
+        assert torch.equal(got.bary, want.bary[:n]) and torch.equal(got.distance, want.distance[:n])
+
 def test_locator_rejects_bad_input():
     loc = SurfaceLocator(sphere(5.0, 1))
     with pytest.raises(ValueError, match="candidates"):

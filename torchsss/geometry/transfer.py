@@ -105,6 +105,9 @@ class SurfaceLocator:
         [2.0, 0.0]
     """
 
+    #: Query points located at a time (bounds the temporaries: about 1.3 kB a point at 8 candidates).
+    block_points = 1 << 16
+
     def __init__(self, mesh: Mesh, candidates: int = 8) -> None:
         self.mesh = check_mesh(mesh)
         if isinstance(candidates, bool) or not isinstance(candidates, numbers.Integral) or candidates < 1:
@@ -129,16 +132,26 @@ class SurfaceLocator:
         if points.shape[0] == 0:
             empty = points.new_zeros(0)
             return ClosestPoints(torch.zeros(0, dtype=torch.int64, device=device), points.new_zeros(0, 3), empty)
-        _, idx = self._tree.query(points.detach().double().cpu().numpy(), k=self.candidates, workers=-1)
-        cand = torch.as_tensor(idx, dtype=torch.int64, device=device).reshape(points.shape[0], -1)  # (P, K)
-        tri = self._tri.to(device=device, dtype=points.dtype)[cand]  # (P, K, 3, 3)
-        p = points.detach()[:, None, :]
-        bary = closest_point_on_triangle(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])  # (P, K, 3)
-        closest = (bary[..., None] * tri).sum(-2)
-        dist = (closest - p).norm(dim=-1)  # (P, K)
-        best = dist.argmin(-1, keepdim=True)
-        return ClosestPoints(cand.gather(1, best).squeeze(1), bary.gather(1, best[..., None].expand(-1, 1, 3))
-                             .squeeze(1), dist.gather(1, best).squeeze(1))
+        n = points.shape[0]
+        face = torch.empty(n, dtype=torch.int64, device=device)
+        bary_out = points.new_empty(n, 3)
+        dist_out = points.new_empty(n)
+        tris = self._tri.to(device=device, dtype=points.dtype)
+        # in blocks of points: the candidates' triangles and the closest-point temporaries of every point at once
+        # (about 1.3 kB a point) took 0.8 GB over the 626k texels of an atlas at 1024
+        for lo in range(0, n, self.block_points):
+            pts = points[lo:lo + self.block_points].detach()
+            _, idx = self._tree.query(pts.double().cpu().numpy(), k=self.candidates, workers=-1)
+            cand = torch.as_tensor(idx, dtype=torch.int64, device=device).reshape(pts.shape[0], -1)  # (p, K)
+            tri = tris[cand]  # (p, K, 3, 3)
+            p = pts[:, None, :]
+            bary = closest_point_on_triangle(p, tri[..., 0, :], tri[..., 1, :], tri[..., 2, :])  # (p, K, 3)
+            dist = ((bary[..., None] * tri).sum(-2) - p).norm(dim=-1)  # (p, K)
+            best = dist.argmin(-1, keepdim=True)
+            face[lo:lo + pts.shape[0]] = cand.gather(1, best).squeeze(1)
+            bary_out[lo:lo + pts.shape[0]] = bary.gather(1, best[..., None].expand(-1, 1, 3)).squeeze(1)
+            dist_out[lo:lo + pts.shape[0]] = dist.gather(1, best).squeeze(1)
+        return ClosestPoints(face, bary_out, dist_out)
 
 
 def transferred_uv(locator: SurfaceLocator, face_uvs: Tensor, position: Tensor, mask: Tensor) -> Tensor:
