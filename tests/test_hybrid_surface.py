@@ -83,6 +83,26 @@ def test_ball_pairs_grid_blocks_and_refusal(monkeypatch):
         ball_pairs(rec, src, 1.5, max_pairs=100, method="grid")
     with pytest.raises(ValueError, match="method: expected one of"):
         ball_pairs(rec, src, 1.5, method="octree")
+    with pytest.raises(ValueError, match="max_pairs: expected at most 100 pairs"):
+        ball_pairs(rec, src, 1.5, max_pairs=100, method="kdtree")
+
+
+def test_ball_pairs_kdtree_blocks(monkeypatch):
+    """The tree path lists blocks of consecutive receivers, each ordered by (receiver, source): any block size
+    (here down to blocks of one receiver, and receivers without a pair) gives the same pairs in the same order."""
+    import torchsss.geometry.neighbours as nb
+
+    gen = torch.Generator().manual_seed(3)
+    rec = torch.cat([torch.rand(250, 3, generator=gen, dtype=F64) * 6.0, torch.full((5, 3), 100.0, dtype=F64)])
+    src = torch.rand(400, 3, generator=gen, dtype=F64) * 6.0
+    whole = ball_pairs(rec, src, 1.5, method="kdtree")
+    key = whole[0] * src.shape[0] + whole[1]
+    assert bool((key[1:] > key[:-1]).all())  # (receiver, source) order, no pair twice
+    torch.testing.assert_close(whole[2], (rec[whole[0]] - src[whole[1]]).norm(dim=1), rtol=1e-12, atol=0)
+    for block in (1, 37, 5000):
+        monkeypatch.setattr(nb, "KDTREE_BLOCK", block)
+        for a, b in zip(whole, ball_pairs(rec, src, 1.5, method="kdtree")):
+            assert torch.equal(a, b)
 
 
 def test_ball_pairs_errors():
@@ -256,3 +276,21 @@ def test_hybrid_renderer_plans_the_local_grid_and_falls_back():
     assert atlas.stats["local_term"] == "atlas" and "local_stride" not in atlas.stats
     with pytest.raises(ValueError, match="local: expected 'surface' or 'atlas'"):
         build("hybrid", mesh, "skin1", atlas_resolution=64, local="texture")
+
+
+def test_surface_local_pair_weights_in_blocks():
+    """Outside autograd the pairs' weights are evaluated in blocks (bounded temporaries): any block size gives what
+    one block gives, and both agree with the material's own formula under autograd (the table's tolerance)."""
+    mat = DipoleMaterial(*Material.from_json("marble").tensors(F64)).requires_grad_(False)
+    local, smp, w = _flat_local(mat, spacing=0.2)
+    rec = smp.position[::2000]
+    _, cols, dist = ball_pairs(rec, smp.position, w.bound)
+    assert dist.numel() > 5000
+    with torch.no_grad():
+        whole = local.pair_weights(cols, dist)
+        local.weight_block = 999
+        blocks = local.pair_weights(cols, dist)
+    assert torch.equal(whole, blocks)
+    with torch.enable_grad():
+        exact = local.pair_weights(cols, dist)
+    torch.testing.assert_close(blocks, exact.detach(), rtol=1e-6, atol=1e-12 * float(exact.abs().max()))

@@ -375,6 +375,9 @@ class SurfaceLocal(nn.Module):
         ((1, 1, 3), True)
     """
 
+    #: Pairs whose weights are evaluated at a time outside autograd (:meth:`pair_weights`).
+    weight_block = 1 << 20
+
     def __init__(self, sample_uv: Tensor, sample_area: Tensor, valid: Tensor, material: nn.Module,
                  weight: ChangLocalProfile, *, irradiance_scale: Tensor | None = None,
                  translucency_mask: Tensor | None = None) -> None:
@@ -437,10 +440,23 @@ class SurfaceLocal(nn.Module):
         evaluated through a table (:func:`~torchsss.modules.material.bulk_profile`); fewer are evaluated directly.
         """
         d = distance.unsqueeze(-1)
+        if torch.is_grad_enabled() or is_tracing():
+            return self.area[cols].unsqueeze(-1).to(d.dtype) * self.material(d) * self.weight(d)
         profile = self.material
-        if distance.numel() >= material_mod.BULK_MIN_VALUES and not (torch.is_grad_enabled() or is_tracing()):
+        if distance.numel() >= material_mod.BULK_MIN_VALUES:
             profile = bulk_profile(self.material, float(distance.max()), d.dtype, d.device)
-        return self.area[cols].unsqueeze(-1).to(d.dtype) * profile(d) * self.weight(d)
+        # in blocks written into the output (every pair's profile temporaries at once took 0.5 GB over the 8.4M
+        # pairs of the hybrid's frame on the shared bunny)
+        out = None
+        for lo in range(0, max(distance.numel(), 1), self.weight_block):
+            hi = min(distance.numel(), lo + self.weight_block)
+            part = self.area[cols[lo:hi]].unsqueeze(-1).to(d.dtype) * profile(d[lo:hi]) * self.weight(d[lo:hi])
+            if out is None:
+                if hi - lo == distance.numel():
+                    return part
+                out = part.new_empty(distance.numel(), part.shape[-1])
+            out[lo:hi] = part
+        return out
 
     def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor,
                 receivers: int | Tensor, *, cache: bool = True) -> Tensor:
