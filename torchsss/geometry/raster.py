@@ -52,7 +52,7 @@ from torch import Tensor
 
 from torchsss._checks import is_tracing
 
-__all__ = ["Raster", "depth_peel", "interpolate", "rasterize", "rasterize_depth", "rasterize_uv"]
+__all__ = ["Raster", "depth_peel", "interpolate", "rasterize", "rasterize_depth", "rasterize_uv", "screen_coords"]
 
 _W_EPS = 1e-6
 _KEY_EMPTY = torch.iinfo(torch.int64).max
