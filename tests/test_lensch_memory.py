@@ -153,3 +153,18 @@ def test_hat_moment_rule_is_derived_from_per_vertex_moments(small):
     far = HatMoments(moments.vertices * 1e6, moments.centroid * 0, moments.covariance)
     r, radial, transverse = entry_moments(far, torch.tensor([0]), torch.tensor([0]))
     assert torch.isfinite(torch.stack([r, radial, transverse])).all() and float(radial + transverse) == 0.75
+
+
+def test_entry_moments_typed_errors():
+    from torchsss.geometry.lensch import HatMoments, entry_moments
+
+    m = HatMoments(torch.zeros(4, 3), torch.zeros(4, 3), torch.zeros(4, 3, 3))
+    idx = torch.tensor([0, 1])
+    with pytest.raises(TypeError, match="moments: expected a HatMoments"):
+        entry_moments((m.vertices, m.centroid, m.covariance), idx, idx)
+    with pytest.raises(ValueError, match=r"moments.covariance: expected shape \(4, 3, 3\)"):
+        entry_moments(HatMoments(m.vertices, m.centroid, torch.zeros(4, 9)), idx, idx)
+    with pytest.raises(TypeError, match="cols: expected an integer tensor"):
+        entry_moments(m, idx, idx.float())
+    with pytest.raises(ValueError, match="rows, cols: expected two equal"):
+        entry_moments(m, idx, torch.tensor([0, 1, 2]))

@@ -976,6 +976,10 @@ def entry_moments(moments: HatMoments, rows: Tensor, cols: Tensor) -> tuple[Tens
     Returns:
         ``(r, radial_var, transverse_var)``, each :math:`(E,)`.
 
+    Raises:
+        TypeError: ``moments`` not a :class:`HatMoments`, or ``rows``/``cols`` not integer tensors.
+        ValueError: shapes other than :math:`(N, 3)`, :math:`(N, 3)`, :math:`(N, 3, 3)` and two equal :math:`(E,)`.
+
     Examples:
         >>> m = HatMoments(torch.tensor([[0.0, 0, 0], [3.0, 4, 0]]), torch.zeros(2, 3),
         ...                torch.diag(torch.tensor([1.0, 2.0, 0.0])).expand(2, 3, 3))
@@ -983,6 +987,20 @@ def entry_moments(moments: HatMoments, rows: Tensor, cols: Tensor) -> tuple[Tens
         >>> round(float(r), 4), round(float(sr2), 4), round(float(st2), 4)  # u = (0.6, 0.8, 0)
         (5.0, 1.64, 1.36)
     """
+    if not isinstance(moments, HatMoments):
+        raise TypeError(f"moments: expected a HatMoments, got {type(moments).__name__}")
+    n = moments.vertices.shape[0]
+    for name, t, shape in (("moments.vertices", moments.vertices, (n, 3)),
+                           ("moments.centroid", moments.centroid, (n, 3)),
+                           ("moments.covariance", moments.covariance, (n, 3, 3))):
+        if tuple(t.shape) != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {tuple(t.shape)}")
+    for name, t in (("rows", rows), ("cols", cols)):
+        if not isinstance(t, Tensor) or t.is_floating_point() or t.is_complex() or t.dtype == torch.bool:
+            raise TypeError(f"{name}: expected an integer tensor, got "
+                            f"{t.dtype if isinstance(t, Tensor) else type(t).__name__}")
+    if rows.dim() != 1 or rows.shape != cols.shape:
+        raise ValueError(f"rows, cols: expected two equal (E,) shapes, got {tuple(rows.shape)} and {tuple(cols.shape)}")
     dvec = moments.vertices[cols] - moments.centroid[rows]
     r = dvec.norm(dim=-1)
     u = dvec / r.clamp_min(torch.finfo(r.dtype).tiny).unsqueeze(-1)
