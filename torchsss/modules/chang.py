@@ -59,6 +59,7 @@ from torchsss._checks import (
     is_tracing,
     skip_value_checks,
 )
+from torchsss.modules.blocks import in_blocks
 from torchsss.modules.cache import ValueCache, material_key
 from torchsss.modules.material import bulk_profile
 from torchsss.modules.sampling import IcdfSampler
@@ -447,16 +448,8 @@ class SurfaceLocal(nn.Module):
             profile = bulk_profile(self.material, float(distance.max()), d.dtype, d.device)
         # in blocks written into the output (every pair's profile temporaries at once took 0.5 GB over the 8.4M
         # pairs of the hybrid's frame on the shared bunny)
-        out = None
-        for lo in range(0, max(distance.numel(), 1), self.weight_block):
-            hi = min(distance.numel(), lo + self.weight_block)
-            part = self.area[cols[lo:hi]].unsqueeze(-1).to(d.dtype) * profile(d[lo:hi]) * self.weight(d[lo:hi])
-            if out is None:
-                if hi - lo == distance.numel():
-                    return part
-                out = part.new_empty(distance.numel(), part.shape[-1])
-            out[lo:hi] = part
-        return out
+        return in_blocks(lambda lo, hi: self.area[cols[lo:hi]].unsqueeze(-1).to(d.dtype) * profile(d[lo:hi])
+                         * self.weight(d[lo:hi]), distance.numel(), self.weight_block)
 
     def forward(self, irradiance: Tensor, rows: Tensor, cols: Tensor, distance: Tensor,
                 receivers: int | Tensor, *, cache: bool = True) -> Tensor:

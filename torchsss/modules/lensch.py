@@ -36,6 +36,7 @@ from torchsss.geometry.lensch import (
     _distance,
     entry_moments,
 )
+from torchsss.modules.blocks import in_blocks
 from torchsss.modules.cache import ValueCache, material_key
 from torchsss.modules.material import bulk_profile
 from torchsss.ops.sparse import SparsePattern, sparse_apply_t, sparse_pattern
@@ -786,16 +787,10 @@ class GlobalResponse(nn.Module):
             f = self.source_area[lo:hi, None, None] * profile(self.distance[lo:hi].unsqueeze(-1))
             return torch.where(self.keep[lo:hi].unsqueeze(-1), f, torch.zeros_like(f)).permute(2, 0, 1)
 
-        step = max(1, self.value_block // max(n, 1))
-        if n <= step or torch.is_grad_enabled() or is_tracing():
+        if torch.is_grad_enabled() or is_tracing():
             vals = rows(0, n)
-        else:  # written into one output (a list and a cat would hold both at once)
-            first = rows(0, step)
-            vals = first.new_empty((first.shape[0], n, n))
-            vals[:, :step] = first
-            del first
-            for lo in range(step, n, step):
-                vals[:, lo:min(n, lo + step)] = rows(lo, min(n, lo + step))
+        else:
+            vals = in_blocks(rows, n, max(1, self.value_block // max(n, 1)), dim=1)
         if self.diagonal_index.numel():
             disk = _disk_integral(self.material, self.source_area.index_select(0, self.diagonal_index))
             if disk is not None:
@@ -843,16 +838,7 @@ class GlobalResponse(nn.Module):
         """
         if torch.is_grad_enabled() or is_tracing():
             return fn(0, n)
-        block = 1 << 18
-        out = None
-        for lo in range(0, n, block):  # written into one output (a list and a cat would hold both at once)
-            part = fn(lo, min(n, lo + block))
-            if out is None:
-                if part.shape[0] == n:
-                    return part
-                out = part.new_empty((n, *part.shape[1:]))
-            out[lo:lo + part.shape[0]] = part
-        return fn(0, 0) if out is None else out
+        return in_blocks(fn, n, 1 << 18)
 
     def hat_values(self, channels: int, dtype: torch.dtype) -> Tensor:
         """:math:`(E, C)` the near entries of the hat quadrature, :math:`\\sum_t w_t R_d(d_t)`.
