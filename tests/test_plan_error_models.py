@@ -136,24 +136,27 @@ def test_splat_aliasing_of_a_dark_channel_is_not_charged_to_the_image():
 
 
 def test_the_newest_verification_set_was_not_calibrated_on():
-    """``bench_planner.THIRD`` verifies the refitted constants: none of its scenes is a calibration scene (the
-    trades of ``bench_trade.calibration_scenes`` and the rows of ``fit_planner.VERIFICATION_ROWS``)."""
+    """``bench_planner.THIRD`` and ``FOURTH`` verify the refitted constants: none of their scenes is a calibration
+    scene (the trades of ``bench_trade.calibration_scenes`` and the rows of ``fit_planner.VERIFICATION_ROWS``), nor
+    are the two sets' scenes shared."""
     import json
     import sys
     from pathlib import Path
 
     bench = Path(__file__).resolve().parents[1] / "benchmarks"
     sys.path.insert(0, str(bench))
-    from bench_planner import FRESH, THIRD, VERIFICATION
+    from bench_planner import FOURTH, FRESH, THIRD, VERIFICATION
     from bench_trade import calibration_scenes
     from fit_planner import VERIFICATION_ROWS
 
     calibrated = {tuple(e["spec"][:4]) for name in VERIFICATION_ROWS
                   for e in json.loads((bench / "results" / name).read_text())["scenes"]}
     assert {tuple(v[:4]) for v in (*VERIFICATION.values(), *FRESH.values())} <= calibrated
-    assert not {tuple(v[:4]) for v in THIRD.values()} & calibrated and len(THIRD) >= 8
     names = {s.name for s in calibration_scenes(96)}
-    assert not set(THIRD) & names
+    for held_out in (THIRD, FOURTH):
+        assert not {tuple(v[:4]) for v in held_out.values()} & calibrated and len(held_out) >= 8
+        assert not set(held_out) & names
+    assert not {tuple(v[:4]) for v in THIRD.values()} & {tuple(v[:4]) for v in FOURTH.values()}
 
 
 def _loop_sampling_spread(mesh, material, lights, eye):
