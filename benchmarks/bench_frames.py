@@ -28,7 +28,7 @@ run's Markdown includes the CUDA rows when that file exists, so both land in one
 
 Usage::
 
-    python benchmarks/bench_frames.py                       # CPU, scenes and ops (about an hour on 2 cores)
+    python benchmarks/bench_frames.py                       # CPU, scenes and ops (17-45 minutes on 2 cores)
     python benchmarks/bench_frames.py --quick               # default scene at 64x64 and small ops (a minute)
     python benchmarks/bench_frames.py --device cuda --skip-ops --name frames_cuda
 """
