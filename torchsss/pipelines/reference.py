@@ -54,6 +54,7 @@ from torchsss.pipelines.renderer import Renderer, RenderResult, check_dtype, che
 from torchsss.pipelines.specular import specular_radiance
 
 __all__ = [
+    "REFERENCE_MAX_PAIRS",
     "ReferenceRenderer",
     "RenderResult",
     "cast_shadow_faces",
@@ -66,6 +67,13 @@ __all__ = [
 ]
 
 _SHADOWS = ("raytrace", "shadowmap", "none")
+
+#: The reference's pair budget: one integrator chunk, and its receiver blocks of ``8 * max_pairs / N`` receivers
+#: for N samples. Larger than the integrator's own :data:`~torchsss.ops.reference.DEFAULT_MAX_PAIRS` (a chunk of
+#: the eager chain that stays in cache) because the reference's frames run in the fused kernel, which takes a
+#: receiver block whole: the default scene at 128x128 (102M pairs) took 4.6 s a warm frame at ``1 << 22`` and 7.2 s
+#: at ``1 << 18`` (2026-11-28, 2 threads, both beside the same other job), its peak 509 and 547 MB.
+REFERENCE_MAX_PAIRS = 1 << 22
 
 
 def default_spacing(material: Material | nn.Module, mesh: Mesh | None = None, eps: float = 0.01) -> float:
@@ -191,7 +199,7 @@ def reference_radiosity_at(
     irradiance: Tensor,
     material: Material | nn.Module,
     *,
-    max_pairs: int = 1 << 22,
+    max_pairs: int = REFERENCE_MAX_PAIRS,
     progress: bool = False,
     distance_scale: Tensor | None = None,
     irradiance_scale: Tensor | None = None,
@@ -299,9 +307,10 @@ class ReferenceRenderer(Renderer):
     """
 
     method = "reference"
-    defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact", max_pairs=1 << 22,
-                    max_samples=2_000_000, specular=False, roughness=0.3, source_faces=None, stride=None, refine=0.2,
-                    shadow_refine=2, project_sources=True)
+    defaults: ClassVar[dict] = dict(spacing_mm=None, eps=0.01, shadows="raytrace", fresnel="exact",
+                                    max_pairs=REFERENCE_MAX_PAIRS, max_samples=2_000_000, specular=False,
+                                    roughness=0.3, source_faces=None, stride=None, refine=0.2, shadow_refine=2,
+                                    project_sources=True)
 
     def __init__(self, mesh: Mesh, material, *, distance_scale: Tensor | None = None,
                  irradiance_scale: Tensor | None = None, **kwargs) -> None:
@@ -437,7 +446,7 @@ def render_reference_objects(
     shadows: str = "raytrace",
     fresnel: str = "exact",
     dtype: torch.dtype = torch.float32,
-    max_pairs: int = 1 << 22,
+    max_pairs: int = REFERENCE_MAX_PAIRS,
     max_samples: int = 2_000_000,
     progress: bool = False,
     specular: bool = False,
