@@ -24,11 +24,16 @@ from torchsss.plan import (
     SceneFacts,
     candidates,
     detail_faces,
+    hybrid_error,
     hybrid_local_bound,
     hybrid_local_plan,
+    hybrid_split_plan,
+    icdf_error,
     plan,
     plan_method,
     predict,
+    sampling_spread,
+    sampling_terms,
     source_count,
 )
 from torchsss.scene import Scene, default_scene_path, load_scene
@@ -327,7 +332,7 @@ def test_hybrid_local_pairs_predicted_like_the_renderer_counts_them():
     assert per == pytest.approx(measured, rel=0.3)
 
 
-def test_hybrid_split_narrowing_is_predicted_and_planned_as_the_all_sampled_estimator():
+def test_hybrid_split_narrowing_is_predicted_and_planned_with_the_sampled_near_field():
     s = _scene(mesh="torus", size=30.0, material="marble", res=64, light=(1.0, 0.3, 0.2))
     facts = SceneFacts.from_scene(s, throughput=False)
     assert facts.local_bound_mm > 0
@@ -335,30 +340,57 @@ def test_hybrid_split_narrowing_is_predicted_and_planned_as_the_all_sampled_esti
     for_n = {"samples": 4096}
     stride, _, per = hybrid_local_plan(facts)
     assert stride >= 1 and per > 0
+    assert hybrid_split_plan(facts)[:2] == (1, stride)
     plain = predict("hybrid", for_n, facts, mat)
-    # the same object seen by many more pixels: even stride 8 cannot hold its pairs, the renderer narrows the split
-    big = dataclasses.replace(facts, covered_px=facts.covered_px * 400)
+    hf, ha, _ = sampling_terms(facts, "hybrid")
+    assert plain["error"] == pytest.approx(math.hypot(hf, ha))  # the default split: the hybrid's own model
+    assert facts.narrowed_bounds_mm == ()  # not needed: the default split fits
+    # the renderer narrows c in steps of 2 while the pairs do not fit: seen by 16x the pixels (256 x 256) stride 8
+    # cannot hold the pairs at c = 0.1, and the facts hold each step's local bound, which shrinks (0 where R_p
+    # vanishes: the split narrowed away)
+    s_big = dataclasses.replace(s, camera=dataclasses.replace(s.camera, width=256, height=256))
+    big = SceneFacts.from_scene(s_big, throughput=False)
+    assert big.covered_px == pytest.approx(16 * facts.covered_px, rel=1e-6)
+    bounds = big.narrowed_bounds_mm
+    assert len(bounds) == 4 and all(b <= a for a, b in zip((big.local_bound_mm, *bounds), bounds))
+    assert all(b == pytest.approx(hybrid_local_bound(_mat64(s), big.radius_mm, c=0.1 * 2 ** (i + 1)))
+               for i, b in enumerate(bounds))
+    # the first narrowed split whose pairs fit is taken, with its own stride and pairs, and the spread of the near
+    # field it samples (its global part's), which exceeds the default split's and stays below the whole profile's
     assert hybrid_local_plan(big)[0] == -1
-    narrowed = predict("hybrid", for_n, big, mat)
-    icdf = predict("icdf", for_n, big, mat)
-    assert narrowed["error"] == pytest.approx(icdf["error"]) and narrowed["error"] > plain["error"]
-    # the planned N follows the same model (it planned N = 1024, 5.9%, for the narrowed 50 mm marble bunny at 3%)
+    scale, st, pairs, per_n = hybrid_split_plan(big)
+    assert scale in (2, 4, 8, 16) and st >= 1 and per_n < per and pairs > 0
+    assert bounds[(2, 4, 8, 16).index(scale)] > 0
+    assert 0.0 < big.narrowed_spread < big.sampling_spread
+    # its error: the larger of the hybrid's own model and the icdf estimator's with the narrowed split's spread
+    for spread in (0.2, 50.0):
+        nar = dataclasses.replace(big, narrowed_spread=spread)
+        want = max(math.hypot(hf, ha), icdf_error(nar, 4096, spread=spread))
+        assert predict("hybrid", for_n, nar, mat)["error"] == pytest.approx(want)
+        assert hybrid_error(nar, 4096) == pytest.approx(want)
+    assert icdf_error(dataclasses.replace(big, narrowed_spread=50.0), 4096, spread=50.0) > math.hypot(hf, ha)
+    # nothing fits even at c x 16: the icdf estimator; every narrowed bound 0: narrowed away, the icdf estimator
+    huge = dataclasses.replace(big, covered_px=facts.covered_px * 1e6, narrowed_bounds_mm=(4.0, 3.0, 2.0, 1.0))
+    assert hybrid_split_plan(huge)[:2] == (16, -1)
+    assert predict("hybrid", for_n, huge, mat)["error"] == pytest.approx(predict("icdf", for_n, huge, mat)["error"])
+    away = dataclasses.replace(big, narrowed_bounds_mm=(0.0, 0.0, 0.0, 0.0))
+    assert hybrid_split_plan(away) == (0, 0, 0.0, 0.0)
+    assert predict("hybrid", for_n, away, mat)["error"] == pytest.approx(predict("icdf", for_n, away, mat)["error"])
+    # the planned N follows the same model: the narrowed hybrid at a large spread plans at least the icdf's N at
+    # the hybrid's margin on that spread
     tol = 0.05
-    (hyb,) = [c for c in candidates(s, big, tol, ["hybrid"]) if c["method"] == "hybrid"]
-    (ic,) = [c for c in candidates(s, big, tol, ["icdf"]) if c["method"] == "icdf"]
-    assert "local_term" in hyb["rules"] and "local_term" in RULES
-    want = tol / MARGINS["hybrid"]  # the icdf model at the hybrid's margin
+    nar = dataclasses.replace(big, narrowed_spread=20.0)
+    (hyb,) = [c for c in candidates(s, nar, tol, ["hybrid"]) if c["method"] == "hybrid"]
+    assert "narrows to c = " in hyb["rules"]["local_term"] and "local_term" in RULES
     n = hyb["knobs"]["samples"]
-    assert predict("hybrid", {"samples": n}, big, mat)["error"] <= want < predict("hybrid", {"samples": n // 2}, big,
-                                                                                  mat)["error"]
-    assert n > 1024 and ic["knobs"]["samples"] >= n  # icdf's larger margin asks at least as many
+    assert hybrid_error(nar, n) * MARGINS["hybrid"] <= tol < hybrid_error(nar, n // 2) * MARGINS["hybrid"]
     # strides grow with the pixels while they fit; the local term's pairs cost frame and setup time
     strides = [hybrid_local_plan(dataclasses.replace(facts, covered_px=facts.covered_px * f))[0]
                for f in (1, 2, 4, 8, 16, 64, 400)]
     order = [99 if st == -1 else st for st in strides]  # narrowed after every stride
     assert order == sorted(order) and strides[0] >= 1 and len(set(strides)) >= 3
     none = dataclasses.replace(facts, local_bound_mm=0.0)
-    assert hybrid_local_plan(none) == (0, 0.0, 0.0)
+    assert hybrid_local_plan(none) == (0, 0.0, 0.0) and hybrid_split_plan(none) == (0, 0, 0.0, 0.0)
     assert predict("hybrid", for_n, none, mat)["frame_s"] < plain["frame_s"]
     # no split: the hybrid is the icdf estimator (the teapot in ketchup at 3% was planned N = 1024 on the hybrid's
     # own model, 1.88% predicted, and measured 3.63%)
@@ -366,10 +398,57 @@ def test_hybrid_split_narrowing_is_predicted_and_planned_as_the_all_sampled_esti
     (off,) = [c for c in candidates(s, none, 0.05, ["hybrid"]) if c["method"] == "hybrid"]
     assert "split is off" in off["rules"]["local_term"]
     # the split is off where the bound exceeds 0.8 x the object's radius (build_hybrid's max_reach)
-    module = s.material
-    from torchsss.modules.material import material_module
-    m = material_module(module, dtype=torch.float64)
+    m = _mat64(s)
     assert hybrid_local_bound(m, 1.0) == 0.0 and hybrid_local_bound(m, 100.0) > 0
+    assert hybrid_local_bound(m, 100.0, c=0.4) < hybrid_local_bound(m, 100.0)
+    # the bounds are the renderer's own: its default split and the narrowed ones it builds (their weight's tail at
+    # most 2 R_p past R_p)
+    renderer = build("hybrid", sphere(15.0, 2), "marble", samples=64)
+    assert renderer.module.bound == pytest.approx(hybrid_local_bound(m, 100.0), rel=1e-6)
+    for c in (0.2, 0.4, 0.8):
+        module = renderer._split(c)[0]
+        assert module.bound == pytest.approx(hybrid_local_bound(m, 100.0, c=c), rel=1e-6, abs=1e-9)
+
+
+def _mat64(s):
+    from torchsss.modules.material import material_module
+
+    return material_module(s.material, dtype=torch.float64)
+
+
+def test_hybrid_local_samples_follow_the_builders_decimation():
+    # a finely tessellated 4 mm sphere (20,480 faces) in marble, whose spacing needs far fewer: the hybrid samples the
+    # mesh decimated to the spacing (build_hybrid), not one sample per face as the full mesh's reference does
+    from torchsss.geometry.sampling import faces_for_spacing, surface_samples
+    from torchsss.pipelines.atlas_view import source_mesh
+    from torchsss.pipelines.reference import default_spacing
+
+    s = Scene.from_dict({"mesh": "sphere", "size_mm": 4.0, "material": "marble",
+                         "lights": [{"type": "point", "position": [0, 0, 100], "intensity": 1e4}],
+                         "camera": {"eye": [0, 0, 100], "target": [0, 0, 0], "width": 16, "height": 16}})
+    mesh = sphere(2.0, 5)
+    assert mesh.num_faces == 20480
+    facts = SceneFacts.from_scene(s, mesh, throughput=False)
+    mat = _mat64(s)
+    h = default_spacing(mat, mesh)
+    built = surface_samples(source_mesh(mesh, faces_for_spacing(mesh.area, h)), h).area.shape[0]
+    assert facts.local_samples == pytest.approx(built, rel=0.3)
+    assert facts.local_samples < 0.5 * facts.sources[0]  # the reference's full-mesh count, which it used before
+
+
+def test_sampling_spread_of_a_sampled_part():
+    # sampling the part g = R_d / 2 (the rest computed exactly): the one-sample deviation of Phi g is half that of
+    # Phi R_d, relative to the same radiosity; sampling nothing leaves no noise
+    s = _scene(mesh="torus", size=20.0, material="skin1", light=(1.0, 0.3, 0.2))
+    mesh = s.load_mesh()
+    m = _mat64(s)
+    whole = sampling_spread(mesh, m, s.lights, s.camera.eye)
+    assert sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=m) == pytest.approx(whole, rel=1e-4)
+    half = sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=lambda r: 0.5 * m(r))
+    assert half == pytest.approx(0.5 * whole, rel=1e-3)
+    assert sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=lambda r: 0.0 * m(r)) == 0.0
+    with pytest.raises(TypeError, match="sampled: expected a callable"):
+        sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=3.0)
 
 
 def test_splat_truncation_and_sample_floor_hold_whatever_the_light():

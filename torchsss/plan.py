@@ -27,9 +27,9 @@ miss) and :func:`depth` (the object's thickness in scattering lengths, weighted 
   irradiance-importance sample of the seen radiosity, in closed form on the faces; hybrid: plus its split's floor);
   time ~ pixels x N. The hybrid's surface local term adds its pairs (covered pixels x the samples
   within the local bound, at the pixel stride the renderer would pick, :func:`hybrid_local_plan`) to setup and
-  frame; where they do not fit even at stride 8 the renderer narrows the split, and the hybrid is predicted with the
-  icdf estimator's error (the near field it then samples is noisier than its fitted model), as it is where the split
-  is off (then it is the icdf estimator).
+  frame; where they do not fit even at stride 8 the renderer narrows the split (:func:`hybrid_split_plan`), and the
+  hybrid is predicted with the larger of its own error and the icdf estimator's on the near field it then samples
+  (the narrowed split's one-sample spread; :func:`hybrid_error`); where the split is off it is the icdf estimator.
 * lensch: a floor plus a texel-size term; setup (atlas, kernels, throughput,
   blending) dominates.
 
@@ -50,9 +50,10 @@ this process has already compiled that kernel (:func:`warm_kernels`), and none u
   (:func:`~torchsss.geometry.lensch.plan_lensch`).
 * ``reference``: the reference itself when it is the cheapest way to the tolerance (tiny images, tiny meshes).
 * ``compile``: one compile of the fused pair sum, unless this process has compiled it already.
-* ``local_term``: the hybrid without a split (its local bound reaches across the object), or whose split narrows
-  because its local pairs cannot fit, is the icdf estimator or bounded by it: N planned with the icdf estimator's
-  error (:func:`hybrid_local_plan`).
+* ``local_term``: the hybrid without a split (its local bound reaches across the object) is the icdf estimator;
+  one whose split narrows because its local pairs cannot fit samples the near field it gives up: N planned with
+  the larger of its own error and the icdf estimator's on that part (:func:`hybrid_split_plan`,
+  :func:`hybrid_error`).
 
 Lengths are millimetres, times seconds (of the calibration machine, one thread).
 """
@@ -83,6 +84,7 @@ from torchsss.geometry.lensch import (
 from torchsss.geometry.lights import incident_light
 from torchsss.geometry.mesh import CREASE_DEG, Mesh, check_mesh, decimate, surface_deviation
 from torchsss.geometry.sampling import faces_for_spacing
+from torchsss.modules.chang import ChangLocalProfile
 from torchsss.modules.material import bulk_profile, material_module
 from torchsss.ops.fused import compile_policy, is_warm
 from torchsss.ops.splat import GATHER_REACH
@@ -95,8 +97,8 @@ from torchsss.pipelines.splat import MIN_GRID
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
-__all__ = ["MARGINS", "MODEL", "RULES", "Plan", "SceneFacts", "candidates", "hybrid_local_bound", "hybrid_local_plan",
-           "plan", "plan_method", "predict", "warm_kernels"]
+__all__ = ["MARGINS", "MODEL", "RULES", "Plan", "SceneFacts", "candidates", "hybrid_error", "hybrid_local_bound",
+           "hybrid_local_plan", "hybrid_split_plan", "plan", "plan_method", "predict", "warm_kernels"]
 
 #: The rules the planner applies (name -> what it skips or chooses).
 RULES = {
@@ -110,7 +112,8 @@ RULES = {
     "threshold": "lensch: a finer throughput threshold only where the default cuts light the seen side needs",
     "reference": "the reference itself when it is the cheapest way to the tolerance",
     "compile": "reference/icdf/hybrid: one compile of the fused pair sum, unless this process already compiled it",
-    "local_term": "hybrid: its local term's pairs costed; no split or a narrowing one planned as the icdf estimator",
+    "local_term": "hybrid: its local term's pairs costed; no split planned as the icdf estimator, a narrowing one "
+                  "also bounded by the icdf estimator on the near field it samples",
 }
 
 #: Constants of the predictions (see :func:`predict` for the forms). The error constants are fitted by
@@ -292,7 +295,16 @@ class SceneFacts:
             estimated only where the default threshold cuts enough to matter (:data:`CUT_MATTERS`); () otherwise.
         sampling_spread: the relative standard deviation of one irradiance-importance sample of the radiosity the
             camera sees (:func:`sampling_spread`): the icdf estimator's noise at one sample, from where the light
-            enters against where the camera looks.
+            enters against where the camera looks; -1 when not computed (``from_scene`` with ``spread=False``, for
+            plans that cannot pick icdf or the hybrid).
+        local_samples: the hybrid's surface local samples (its mesh decimated to the truth's spacing, as
+            :func:`~torchsss.pipelines.chang.build_hybrid` samples it; 0: the full mesh's ``sources[0]``).
+        narrowed_bounds_mm: the hybrid's local bound at Chang's importance bound ``c`` times 2, 4, 8, 16 (the
+            renderer narrows the split in these steps when the pairs do not fit; 0 where the split narrows away);
+            computed only where the default split's pairs do not fit (() otherwise).
+        narrowed_spread: the one-sample spread (:func:`sampling_spread`) of the global part of the split the
+            renderer is predicted to narrow to (:func:`hybrid_split_plan`), which samples more of the near field;
+            ``sampling_spread`` where it does not narrow (-1 when not computed).
     """
 
     faces: int
@@ -321,29 +333,55 @@ class SceneFacts:
     throughput_cut: tuple[float, ...] = ()
     throughput_entries_finer: tuple[int, ...] = ()
     sampling_spread: float = 1.0
+    local_samples: int = 0
+    narrowed_bounds_mm: tuple[float, ...] = ()
+    narrowed_spread: float = 1.0
 
     @classmethod
-    def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True) -> SceneFacts:
+    def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True,
+                   spread: bool = True) -> SceneFacts:
         """Compute the facts of a single-object scene (loads the mesh unless given).
 
-        ``throughput``: estimate Lensch's throughput size (70% of the facts' time on a 5k-face mesh). The facts of
-        the last few (scene, mesh) pairs are kept: planning the same scene for another tolerance or frame count
-        reuses them (0.3-0.7 s on a 40k-face scan).
+        ``throughput``: estimate Lensch's throughput size (70% of the facts' time on a 5k-face mesh). ``spread``:
+        compute the icdf estimator's one-sample spreads (``sampling_spread``, ``narrowed_spread``: 0.15 of the
+        0.25 s a 2k-face torus's facts take). The facts of the last few (scene, mesh) pairs are kept: planning the
+        same scene for another tolerance or frame count reuses them (0.3-0.7 s on a 40k-face scan), and facts kept
+        without the spreads gain them when asked.
         """
         mesh = scene.load_mesh(dtype=torch.float64) if mesh is None else mesh
         key = (hash(scene), id(mesh))
         hit = _FACTS.get(key)
         if hit is not None and hit[0] is mesh and hit[1] == scene and (hit[2].throughput_entries >= 0
                                                                        or not throughput):
-            return hit[2]
-        facts = cls._compute(scene, mesh, throughput)
+            if hit[2].sampling_spread >= 0 or not spread:
+                return hit[2]
+            facts = cls._spreads(scene, mesh, hit[2])
+        else:
+            facts = cls._compute(scene, mesh, throughput, spread)
         if len(_FACTS) >= 8:
             _FACTS.pop(next(iter(_FACTS)))
         _FACTS[key] = (mesh, scene, facts)  # the mesh is held, so its id is not reused while the entry lives
         return facts
 
     @classmethod
-    def _compute(cls, scene: Scene, mesh: Mesh, throughput: bool) -> SceneFacts:
+    def _spreads(cls, scene: Scene, given: Mesh, facts: SceneFacts) -> SceneFacts:
+        """``facts`` with the one-sample spreads.
+
+        The whole profile's and, where the hybrid's split narrows, its global part's (:attr:`narrowed_spread`).
+        """
+        mat = _Profile.of(scene.material).module
+        eye = scene.camera.eye
+        whole = sampling_spread(given, mat, scene.lights, eye)
+        facts = dataclasses.replace(facts, sampling_spread=whole, narrowed_spread=whole)
+        scale, stride, _, _ = hybrid_split_plan(facts)
+        if scale > 1 and stride > 0:  # the near field the narrowed split samples: its global part's spread
+            split = _global_part(mat, HybridRenderer.defaults["c"] * scale)
+            facts = dataclasses.replace(facts, narrowed_spread=sampling_spread(given, mat, scene.lights, eye,
+                                                                               sampled=split))
+        return facts
+
+    @classmethod
+    def _compute(cls, scene: Scene, mesh: Mesh, throughput: bool, spread: bool = True) -> SceneFacts:
         given = mesh  # decimated as given (its dtype does not change the collapse), so the plan's fit reuses it
         mesh = mesh.with_dtype(torch.float64)
         prof = _Profile.of(scene.material)
@@ -390,8 +428,8 @@ class SceneFacts:
                    spacing_mm=spacing, sources=sources, source_faces=wanted, sources_decimated=decimated,
                    throughput_entries=estimate_throughput_entries(mesh, mat, rows=64) if throughput else -1,
                    source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius),
-                   irradiance_detail=irradiance_detail(mesh, scene.lights),
-                   sampling_spread=sampling_spread(given, mat, scene.lights, cam.eye))
+                   irradiance_detail=irradiance_detail(mesh, scene.lights), sampling_spread=-1.0,
+                   narrowed_spread=-1.0)
         if throughput:
             # on the mesh Lensch builds on: where the throughput would not fit, decimated as candidates() will
             # (larger vertex areas are cut less: the 30 mm marble bunny's full mesh 0.23-0.48%, where its Lensch
@@ -402,6 +440,16 @@ class SceneFacts:
             finer = tuple(estimate_throughput_entries(mesh, mat, threshold=t, rows=64) for t in LENSCH_THRESHOLDS[1:]) \
                 if cut[0] > CUT_MATTERS else ()
             facts = dataclasses.replace(facts, throughput_cut=cut, throughput_entries_finer=finer)
+        # the hybrid's surface local samples: its mesh decimated to the truth's spacing where that saves faces
+        # (a 268k-face scan holds 26k samples there, not its 268k; build_hybrid), and the split's narrowing
+        local = decimated[0] if wanted[0] < mesh.num_faces else sources[0]
+        facts = dataclasses.replace(facts, local_samples=int(local))
+        if hybrid_local_plan(facts)[0] < 0:  # only then (each bound's R_p is a bisection: 30 ms)
+            narrowed = tuple(hybrid_local_bound(mat, radius, c=HybridRenderer.defaults["c"] * scale)
+                             for scale in NARROWING[1:])
+            facts = dataclasses.replace(facts, narrowed_bounds_mm=narrowed)
+        if spread:
+            facts = cls._spreads(scene, given, facts)
         target = detail_faces(facts)
         if target is None:
             return facts
@@ -413,15 +461,35 @@ class SceneFacts:
 _FACTS: dict[tuple[int, int], tuple[Mesh, Scene, SceneFacts]] = {}
 
 
-def hybrid_local_bound(material: torch.nn.Module, radius_mm: float) -> float:
+#: The scales of Chang's importance bound ``c`` the hybrid's renderer tries, in order, until its surface local term's
+#: pairs fit (:meth:`~torchsss.pipelines.chang.HybridRenderer`'s local plan: the split narrows).
+NARROWING = (1, 2, 4, 8, 16)
+
+
+def hybrid_local_bound(material: torch.nn.Module, radius_mm: float, *, c: float | None = None) -> float:
     """The hybrid's local bound :math:`r_b = R_p + \\ln(0.5/\\epsilon_l)/k` at its default split (mm), 0 when off.
 
     As :func:`~torchsss.pipelines.chang.build_hybrid` at :class:`~torchsss.pipelines.chang.HybridRenderer`'s default
     knobs (``c``, ``k``, ``max_reach``: the split off beyond that times the object's radius) and the surface local
-    term's ``local_eps`` 1e-2.
+    term's ``local_eps`` 1e-2. ``c``: Chang's importance bound instead of the default's (a narrowed split, whose
+    weight's tail the renderer shortens to at most :math:`2 R_p`; :meth:`HybridRenderer._split`).
+    """
+    weight = _split_weight(material, c)
+    bound = 0.0 if weight is None else weight.bound
+    return 0.0 if bound > HybridRenderer.defaults["max_reach"] * radius_mm else bound
+
+
+def _split_weight(material: torch.nn.Module, c: float | None = None) -> ChangLocalProfile | None:
+    """The local weight :math:`W_l^b` of the hybrid's split at importance bound ``c`` (default: the knob's), or None.
+
+    As the renderer builds it (``HybridRenderer._split``): :math:`R_p` from Chang's bound (the dipole's closed form,
+    else the profile's), the blend :math:`k` the knob's at the default ``c`` and, narrowed, at least
+    :math:`\\ln(0.5/\\epsilon_l) / (2 R_p)` (the tail at most :math:`2 R_p` past :math:`R_p`), truncated where
+    :math:`W_l = \\epsilon_l` (1e-2, the surface local term's). None where :math:`R_p = 0` (no split).
     """
     knobs = HybridRenderer.defaults
-    c, k, max_reach = knobs["c"], knobs["k"], knobs["max_reach"]
+    default = c is None or float(c) == knobs["c"]
+    c = knobs["c"] if c is None else float(c)
     local_eps = 1e-2 if knobs["local_eps"] is None else knobs["local_eps"]
     with torch.no_grad():
         if all(hasattr(material, a) for a in ("sigma_a", "sigma_s_prime", "eta")):
@@ -429,16 +497,64 @@ def hybrid_local_bound(material: torch.nn.Module, radius_mm: float) -> float:
                                  c=c).amax())
         else:
             r_p = profile_rp(material, c)
-    bound = r_p + math.log(0.5 / local_eps) / k if r_p > 0 else 0.0
-    return 0.0 if bound > max_reach * radius_mm else bound
+    if r_p <= 0:
+        return None
+    tail = math.log(0.5 / local_eps)
+    k = knobs["k"] if default else max(knobs["k"], tail / (2.0 * r_p))
+    return ChangLocalProfile(r_p, k, r_p + tail / k)
+
+
+def _global_part(material: torch.nn.Module, c: float):
+    """The global part :math:`R_d (1 - W_l^b)` of the hybrid's split at importance bound ``c`` (a profile)."""
+    weight = _split_weight(material, c)
+    return lambda r: material(r) * (1.0 - weight(r))
+
+
+def _local_fit(facts: SceneFacts, bound: float, m: dict) -> tuple[int, float, float]:
+    """``(stride, pairs, per)`` of the surface local term at local bound ``bound`` (stride -1: nothing fits)."""
+    px = facts.covered_px
+    samples = facts.local_samples or facts.sources[0]
+    per = samples * min(1.0, math.pi * bound ** 2 / max(facts.area_mm2, 1e-9))
+    budget = HybridRenderer.defaults["max_local_pairs"] / m["hybrid_local_headroom"]
+    for stride in LOCAL_STRIDES:
+        receivers = px if stride == 1 else px / stride ** 2 + m["hybrid_local_edge"] * math.sqrt(px)
+        if receivers * per <= budget:
+            return stride, receivers * per, per
+    return -1, 0.0, per
+
+
+def hybrid_split_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int, int, float, float]:
+    """The split the hybrid's renderer is predicted to take: ``(scale, stride, pairs, per)``.
+
+    ``scale``: Chang's importance bound is the default's times this (:data:`NARROWING`: 1 where the default split's
+    local pairs fit, :func:`hybrid_local_plan`; else the first narrowed split whose pairs fit at some stride, as the
+    renderer tries them); 0 with ``stride`` 0 where there is no split (off, or narrowed away: everything sampled);
+    the last scale with ``stride`` -1 where even the narrowest does not fit (the renderer then takes the atlas
+    filter).
+    """
+    m = {**MODEL, **(model or {})}
+    if facts.local_bound_mm <= 0:
+        return 0, 0, 0.0, 0.0
+    stride, pairs, per = hybrid_local_plan(facts, m)
+    if stride > 0:
+        return 1, stride, pairs, per
+    for scale, bound in zip(NARROWING[1:], facts.narrowed_bounds_mm):
+        if bound <= 0:
+            return 0, 0, 0.0, 0.0
+        stride, pairs, per = _local_fit(facts, bound, m)
+        if stride > 0:
+            return scale, stride, pairs, per
+    return NARROWING[-1], -1, 0.0, per
 
 
 def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int, float, float]:
     """The hybrid's surface local term on a scene, predicted: ``(stride, pairs, pairs per receiver)``.
 
     Stride 0: no split (nothing local); -1: the pairs do not fit even at stride 8 and the renderer narrows the split
-    (more of the near field sampled: noisier than the hybrid's error model, which is fitted on unnarrowed splits).
-    A receiver gathers the samples (the reference's, :attr:`SceneFacts.sources`) on the part of the surface within
+    (:func:`hybrid_split_plan`: more of the near field sampled, noisier than the hybrid's error model, which is fitted
+    on unnarrowed splits). A receiver gathers the hybrid's surface samples (:attr:`SceneFacts.local_samples`: the
+    mesh decimated to the truth's spacing; the full mesh's :attr:`SceneFacts.sources` where that is not set) on the
+    part of the surface within
     :math:`r_b`, about :math:`n\\,\\pi r_b^2 / A`; at stride ``s`` the renderer evaluates about
     :math:`P/s^2 + e\\sqrt{P}` receivers of the :math:`P` covered pixels, the second term the gaps and silhouettes it
     evaluates exactly (``hybrid_local_edge``: 14.6, from the side-lit 30 mm marble torus at 128 x 128, a calibration
@@ -450,14 +566,7 @@ def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int
     m = {**MODEL, **(model or {})}
     if facts.local_bound_mm <= 0:
         return 0, 0.0, 0.0
-    px = facts.covered_px
-    per = facts.sources[0] * min(1.0, math.pi * facts.local_bound_mm ** 2 / max(facts.area_mm2, 1e-9))
-    budget = HybridRenderer.defaults["max_local_pairs"] / m["hybrid_local_headroom"]
-    for stride in LOCAL_STRIDES:
-        receivers = px if stride == 1 else px / stride ** 2 + m["hybrid_local_edge"] * math.sqrt(px)
-        if receivers * per <= budget:
-            return stride, receivers * per, per
-    return -1, 0.0, per
+    return _local_fit(facts, facts.local_bound_mm, m)
 
 
 def _unlit(scene: Scene, centre: torch.Tensor, eye: torch.Tensor) -> float:
@@ -571,7 +680,7 @@ def _disk_moments(profile, radius: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     return (rd * jac).sum(1), (rd.square() * jac).sum(1)
 
 
-def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float]) -> float:
+def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float], *, sampled=None) -> float:
     """The relative standard deviation of one irradiance-importance sample of the seen radiosity.
 
     The icdf estimator draws sources with probability :math:`p(s) \\propto E(s)\\,dA` and averages
@@ -586,11 +695,16 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float])
     (:func:`_disk_moments`), at most :data:`SPREAD_RECEIVERS` receivers. Environment lights are ignored (smooth
     over the surface); without any other light the result is 1.
 
+    With ``sampled``, the estimator samples that part :math:`g` of the profile only (the hybrid's global part
+    :math:`R_d (1 - W_l^b)`, the rest being computed exactly): the variance is that of :math:`\\Phi g`, relative
+    to the whole radiosity :math:`L = \\int R_d E\\,ds` still.
+
     Args:
         mesh: the object (mm).
         profile: the material's profile, distances :math:`(..., 1)` mm -> :math:`R_d` :math:`(..., C)` mm^-2.
         lights: the scene's lights.
         eye: the camera's position (mm).
+        sampled: the sampled part of ``profile`` (same signature), or None (all of it).
 
     Returns:
         The relative standard deviation of one sample (>= 0).
@@ -610,6 +724,8 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float])
     mesh = check_mesh(mesh)
     if not callable(profile):
         raise TypeError(f"profile: expected a callable profile (distances -> R_d), got {type(profile).__name__}")
+    if sampled is not None and not callable(sampled):
+        raise TypeError(f"sampled: expected a callable profile part or None, got {type(sampled).__name__}")
     try:
         eye = [float(x) for x in eye]
     except (TypeError, ValueError):
@@ -640,18 +756,25 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float])
         fast = bulk_profile(single, float((v.amax(0) - v.amin(0)).norm()) + 1e-6, torch.float32, v.device)
         out_l = torch.zeros(recv.numel(), flux.shape[1], dtype=torch.float64, device=v.device)
         out_s = torch.zeros_like(out_l)
+        out_g = torch.zeros_like(out_l) if sampled is not None else out_l
         step = max(1, 2_000_000 // max(src.numel(), 1))
         for lo in range(0, recv.numel(), step):
             r = recv[lo:lo + step]
             d = (centroid[r, None, :] - centroid[None, src, :]).norm(dim=-1).unsqueeze(-1)
-            rd = fast(d.float()).double()
-            rd = torch.where((r[:, None] == src[None, :]).unsqueeze(-1), torch.zeros_like(rd), rd)  # own face below
+            own = (r[:, None] == src[None, :]).unsqueeze(-1)  # the own face below
+            rd = torch.where(own, 0.0, fast(d.float()).double())
             out_l[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux)
+            if sampled is not None:
+                rd = torch.where(own, 0.0, sampled(d).double())
+                out_g[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux)
             out_s[lo:lo + step] = torch.einsum("rsc,sc->rc", rd.square(), flux)
-        d1, d2 = _disk_moments(lambda x: profile(x).double(), (area[recv] / math.pi).sqrt())
+        radius = (area[recv] / math.pi).sqrt()
+        d1, d2 = _disk_moments(lambda x: profile(x).double(), radius)
+        g1, g2 = (d1, d2) if sampled is None else _disk_moments(lambda x: sampled(x).double(), radius)
     lum = out_l + e[recv] * d1
-    sq = out_s + e[recv] * d2
-    var = (flux.sum(0)[None, :] * sq - lum.square()).clamp_min(0.0)
+    part = lum if sampled is None else out_g + e[recv] * g1
+    sq = out_s + e[recv] * g2
+    var = (flux.sum(0)[None, :] * sq - part.square()).clamp_min(0.0)
     den = float((w[:, None] * lum.square()).sum())
     return math.sqrt(float((w[:, None] * var).sum()) / den) if den > 0 else 1.0
 
@@ -827,28 +950,56 @@ def depth(facts: SceneFacts) -> float:
     return 1.0 + max(facts.unlit, 0.1) * facts.thickness_mm / max(facts.ell_mm)
 
 
-def sampling_terms(facts: SceneFacts, fit: str, model: dict | None = None) -> tuple[float, float, float]:
+def sampling_terms(facts: SceneFacts, fit: str, model: dict | None = None, *,
+                   spread: float | None = None) -> tuple[float, float, float]:
     """The Monte Carlo error model of ``fit`` (``"icdf"`` or ``"hybrid"``) on a scene: ``(floor, a, p)``.
 
     The predicted relative RMSE at :math:`N` samples is :math:`\\sqrt{f^2 + (a (4096/N)^p)^2}` (before the atlas's
     decimation, which :func:`predict` adds). :math:`a` is the fitted ``{fit}_a`` times :math:`u^{\\gamma}
     d^{\\delta}` (``unlit`` u, :func:`depth` d) and, for icdf, :math:`q^{\\beta}` with q the scene's one-sample
     spread (:attr:`SceneFacts.sampling_spread`); the floor is ``{fit}_floor`` (the hybrid's times
-    :math:`u^{u\\_floor}`). The exponents are fitted (``benchmarks/fit_planner.py``). The hybrid without a split (or
-    with a narrowing one) is the icdf estimator: ``fit="icdf"``.
+    :math:`u^{u\\_floor}`). The exponents are fitted (``benchmarks/fit_planner.py``). The hybrid without a split is
+    the icdf estimator: ``fit="icdf"`` (see :func:`hybrid_error`). ``spread``: the icdf's one-sample spread instead
+    of the scene's (a narrowed split's global part, :attr:`SceneFacts.narrowed_spread`).
     """
     m = MODEL if model is None else model
     u, d = max(facts.unlit, 0.1), depth(facts)
     a = m[f"{fit}_a"] * u ** m[f"{fit}_u"] * d ** m[f"{fit}_q_depth"]
     if fit == "icdf":
-        a *= max(facts.sampling_spread, 0.1) ** m["icdf_q_spread"]
+        a *= max(facts.sampling_spread if spread is None else spread, 0.1) ** m["icdf_q_spread"]
     return m[f"{fit}_floor"] * u ** m.get(f"{fit}_u_floor", 0.0), a, m[f"{fit}_p"]
 
 
-def icdf_error(facts: SceneFacts, samples: int, model: dict | None = None) -> float:
+def icdf_error(facts: SceneFacts, samples: int, model: dict | None = None, *, spread: float | None = None) -> float:
     """The icdf estimator's predicted relative RMSE at ``samples`` sources (:func:`sampling_terms`)."""
-    floor, a, p = sampling_terms(facts, "icdf", model)
+    floor, a, p = sampling_terms(facts, "icdf", model, spread=spread)
     return math.hypot(floor, a * (4096.0 / samples) ** p)
+
+
+def hybrid_terms(facts: SceneFacts, model: dict | None = None) -> list[tuple[float, float, float]]:
+    """The hybrid's error terms ``[(floor, a, p), ...]``: its predicted error at N is the largest of theirs.
+
+    Where the default split holds (:func:`hybrid_split_plan`), its own fitted model; without a split (off, narrowed
+    away) or where nothing fits, the icdf estimator's (the teapot in ketchup without a split, at 3%: N 1024 planned
+    on the hybrid's own model at 1.88%, measured 3.63%). Where the split narrows, the near field it gives up is
+    sampled: the larger of its own model and the icdf estimator's with the narrowed split's one-sample spread
+    (:attr:`SceneFacts.narrowed_spread`; not fitted). The icdf model alone had been used there, with the whole
+    profile's spread: the back-lit 50 mm marble example bunny at 256 x 256 (narrowed to c = 0.2) was planned N
+    131,072 for 3% and measured 0.45%; the two calibration scenes that narrow (the cream slab and spot) measured
+    0.3-0.8% where it predicted 3.4-30%.
+    """
+    scale, stride, _, _ = hybrid_split_plan(facts, model)
+    if stride <= 0:
+        return [sampling_terms(facts, "icdf", model)]
+    terms = [sampling_terms(facts, "hybrid", model)]
+    if scale > 1:
+        terms.append(sampling_terms(facts, "icdf", model, spread=facts.narrowed_spread))
+    return terms
+
+
+def hybrid_error(facts: SceneFacts, samples: int, model: dict | None = None) -> float:
+    """The hybrid's predicted relative RMSE at ``samples`` (:func:`hybrid_terms`; before the atlas's decimation)."""
+    return max(math.hypot(f, a * (4096.0 / samples) ** p) for f, a, p in hybrid_terms(facts, model))
 
 
 def detail_faces(facts: SceneFacts) -> int | None:
@@ -992,12 +1143,8 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
             frame = pair_s + m["icdf_f0"]
             setup += compile_s
         else:
-            stride, pairs, per = hybrid_local_plan(facts, m)
-            if stride <= 0:  # no split: the icdf estimator itself; a narrowed split: bounded by it
-                err = icdf_error(facts, n, m)
-            else:
-                floor, a, p = sampling_terms(facts, "hybrid", m)
-                err = math.hypot(floor, a * (4096.0 / n) ** p)
+            _, stride, pairs, per = hybrid_split_plan(facts, m)
+            err = hybrid_error(facts, n, m)
             # the split runs in the fused kernel too
             pair_s, compile_s = _pair_time(px * n, m["hybrid_t_pair"], m, "split" in warm)
             exact = m["hybrid_exact_fraction"] * px * per if stride > 1 else 0.0
@@ -1188,33 +1335,43 @@ def candidates(scene: Scene, facts: SceneFacts, tolerance: float,
                                 "rules": r})
         elif method in ("icdf", "hybrid"):
             m = {**MODEL, **(model or {})}
-            # the error model predict() uses: a hybrid without a split, or whose split narrows, as the icdf estimator
-            local_stride = hybrid_local_plan(facts, m)[0] if method == "hybrid" else 1
-            fit = "icdf" if local_stride <= 0 else method
-            floor, a, power = sampling_terms(facts, fit, m)
+            # the error model predict() uses (hybrid_terms: the hybrid without a split as the icdf estimator, a
+            # narrowed split also bounded by it with the narrowed split's spread); N meets every term
+            terms = hybrid_terms(facts, m) if method == "hybrid" else [sampling_terms(facts, "icdf", m)]
             # the sampling error's share of the tolerance: what the decimated mesh's deviation leaves (predict)
             target = tolerance / MARGINS[method] - (facts.atlas_deviation_mm / min(facts.ell_mm) if decimate else 0.0)
             r = dict(rules)
-            if fit != method:
-                r["local_term"] = ("the surface local term's pairs do not fit even at stride 8: the split narrows, "
-                                   "N planned with the icdf estimator's error" if local_stride < 0 else
-                                   "the split is off (the local bound reaches across the object): every source "
-                                   "sampled, N planned with the icdf estimator's error")
+            if method == "hybrid":
+                scale, stride, _, _ = hybrid_split_plan(facts, m)
+                if stride <= 0:
+                    r["local_term"] = ("the surface local term's pairs do not fit even narrowed: N planned with the "
+                                       "icdf estimator's error" if stride < 0 else
+                                       "the split is off (the local bound reaches across the object, or narrowed "
+                                       "away): every source sampled, N planned with the icdf estimator's error")
+                elif scale > 1:
+                    r["local_term"] = (f"the pairs do not fit at c = {HybridRenderer.defaults['c']:g}: the split "
+                                       f"narrows to c = {HybridRenderer.defaults['c'] * scale:g}; N planned with the "
+                                       f"larger of the hybrid's error and the icdf estimator's on the near field it "
+                                       f"samples (one-sample spread {facts.narrowed_spread:.3g})")
+            needs = [4096.0 * (a / math.sqrt(target * target - f * f)) ** (1.0 / p) if a > 0 else 0.0
+                     for f, a, p in terms if target > f]
             n = 0
-            if target > floor:
-                need = 4096.0 * (a / math.sqrt(target * target - floor * floor)) ** (1.0 / power) if a > 0 else 0.0
-                n = int(2 ** math.ceil(math.log2(max(MIN_SAMPLES, need))))
-                r["samples"] = (f"N = {n}: error ~ hypot({floor:.3g}, {a:.3g} (4096 / N)^{power}) meets "
-                                f"{tolerance:.2%} with margin {MARGINS[method]}")
+            if len(needs) == len(terms):
+                n = int(2 ** math.ceil(math.log2(max(MIN_SAMPLES, *needs))))
+                model_text = " and ".join(f"hypot({f:.3g}, {a:.3g} (4096 / N)^{p})" for f, a, p in terms)
+                r["samples"] = (f"N = {n}: error ~ {model_text} meets {tolerance:.2%} with margin "
+                                f"{MARGINS[method]}")
             if not 0 < n <= 1 << 18:
                 # the floor alone misses, or more than 2^18 samples would be needed: the N at which sampling adds ~12%
                 # to the floor (the most accurate worth having; a candidate predicted outside the tolerance, which
                 # plan_method falls back to, where the method's default N 4096 measured 7.7% on the shared igea
                 # at 3%), the sampling term taken with the method's margin as every planned error is (it held the N
                 # of the back-lit 30 mm marble bunny at 4096, measured 3.9% against 2.5% at 8192)
-                need = 4096.0 * (MARGINS[method] * a / (0.5 * floor)) ** (1.0 / power) if a > 0 else 0.0
+                need = max(4096.0 * (MARGINS[method] * a / (0.5 * f)) ** (1.0 / p) if a > 0 else 0.0
+                           for f, a, p in terms)
                 n = int(2 ** math.ceil(math.log2(min(max(MIN_SAMPLES, need), float(1 << 16)))))
-                r["samples"] = (f"N = {n}: {tolerance:.2%} is out of the estimator's reach (its floor {floor:.3g}, "
+                floors = ", ".join(f"{f:.3g}" for f, _, _ in terms)
+                r["samples"] = (f"N = {n}: {tolerance:.2%} is out of the estimator's reach (its floor {floors}, "
                                 f"or more than 2^18 samples); sampling kept below half of the floor with margin "
                                 f"{MARGINS[method]}")
             out.append({"method": method, "knobs": {"samples": n}, "decimate": decimate, "rules": r})
@@ -1312,8 +1469,12 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     # other plan: its throughput estimate is the costliest fact (0.3 s on a 40k-face scan)
     lensch_bound = m["lensch_s0"] + frames * m["lensch_f0"]
     lensch_last = (not lensch_out and methods is None and trade is None and "lensch" in applicable_methods(scene))
-    first = [x for x in applicable_methods(scene) if x != "lensch"] if lensch_last else methods
-    facts = SceneFacts.from_scene(scene, mesh, throughput=not (lensch_out or lensch_last))
+    # likewise the Monte Carlo estimators: their one-sample spread (0.15 s of a small scene's 0.25 s of facts) only
+    # where their setup and frames at the fewest samples could beat the best other plan
+    sampled_last = methods is None and trade is None
+    later = ("lensch",) * lensch_last + ("icdf", "hybrid") * sampled_last
+    first = [x for x in applicable_methods(scene) if x not in later] if later else methods
+    facts = SceneFacts.from_scene(scene, mesh, throughput=not (lensch_out or lensch_last), spread=not sampled_last)
     measured = _measured(trade)
     warm = warm_kernels()
 
@@ -1336,14 +1497,32 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
                                                                     and r["error"] <= tolerance)
 
     rows = costed(facts, first)
-    lensch_skipped = None
+    skipped: dict[str, str] = {}
+    estimators = [x for x in ("icdf", "hybrid") if sampled_last and x in applicable_methods(scene)]
+    if estimators:
+        best_other = min((r["total_s"] for r in rows if meets(r)), default=math.inf)
+        # each at the fewest samples its rule plans (MIN_SAMPLES), its setup with its decimation: a lower bound
+        bounds = {}
+        for cand in candidates(scene, facts, float(tolerance), estimators, model, mesh=mesh):
+            pred = predict(cand["method"], {**cand["knobs"], "samples": int(MIN_SAMPLES)}, facts, scene.material,
+                           decimate=cand["decimate"], model=model, warm=warm)
+            bounds[cand["method"]] = pred["setup_s"] + frames * pred["frame_s"]
+        keep = [x for x in estimators if bounds.get(x, 0.0) < best_other]
+        for x in estimators:
+            if x not in keep:
+                skipped[x] = (f"not costed: its setup and {frames} frame(s) at {int(MIN_SAMPLES)} samples alone "
+                              f"(>= {bounds[x]:.2f} s) exceed the best other plan's {best_other:.2f} s")
+        if keep:
+            facts = SceneFacts.from_scene(scene, mesh, throughput=not (lensch_out or lensch_last))
+            rows += costed(facts, keep)
     if lensch_last:
         best_other = min((r["total_s"] for r in rows if meets(r)), default=math.inf)
         if best_other <= lensch_bound:
-            lensch_skipped = (f"not costed: its setup and {frames} frame(s) alone (>= {lensch_bound:.2f} s before "
-                              f"the throughput and the blending) exceed the best other plan's {best_other:.2f} s")
+            skipped["lensch"] = (f"not costed: its setup and {frames} frame(s) alone (>= {lensch_bound:.2f} s "
+                                 f"before the throughput and the blending) exceed the best other plan's "
+                                 f"{best_other:.2f} s")
         else:
-            facts = SceneFacts.from_scene(scene, mesh, throughput=True)
+            facts = SceneFacts.from_scene(scene, mesh, throughput=True, spread=facts.sampling_spread >= 0)
             rows += costed(facts, ["lensch"])
     rows.sort(key=lambda r: r["total_s"])
     ok = [r for r in rows if meets(r)]
@@ -1356,8 +1535,7 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     if lensch_out and "lensch" in applicable_methods(scene):
         reasons["lensch"] = (f"not costed: its error floor {floor / MARGINS['lensch']:.1%} (x margin "
                              f"{MARGINS['lensch']}) exceeds {tolerance:.2%}")
-    elif lensch_skipped:
-        reasons["lensch"] = lensch_skipped
+    reasons.update(skipped)
     modelled, skipped = _terms(best, scene)
     return Plan(method=best["method"], knobs=dict(best["knobs"]), decimate=best["decimate"], modelled=modelled,
                 skipped=skipped, predicted_error=best["error"], predicted_setup_s=best["setup_s"],
