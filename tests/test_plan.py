@@ -778,3 +778,30 @@ def test_plan_method_gives_icdf_its_most_accurate_n_where_the_tolerance_is_out_o
         # a reachable tolerance still plans the N that meets it
         loose = plan_method(s, method, 0.05)
         assert loose[0]["samples"] <= 1 << 18 and "planned for 5%" in loose[2]
+
+
+@pytest.mark.parametrize("spec", [dict(tol=0.05), dict(tol=0.01), dict(mesh="torus", material="marble", tol=0.02),
+                                  dict(light=(-0.3, 0.2, -1.0), tol=0.02, res=48)])
+def test_estimators_costed_only_where_they_could_win(spec):
+    # the icdf estimator's one-sample spread (most of a small scene's planning time) is computed only where icdf or
+    # the hybrid at their fewest samples could beat the best other plan; skipping them never changes the plan
+    spec = dict(spec)
+    tol = spec.pop("tol")
+    s = _scene(**spec)
+    from torchsss.plan import _FACTS
+    from torchsss.trade import applicable_methods
+
+    _FACTS.clear()
+    lazy = plan(s, tol)
+    _FACTS.clear()
+    full = plan(s, tol, methods=list(applicable_methods(s)))
+    assert (lazy.method, lazy.knobs) == (full.method, full.knobs)
+    assert full.facts["sampling_spread"] > 0
+    skipped = [m for m in ("icdf", "hybrid") if "not costed" in lazy.reasons.get(m, "")]
+    costed = {c["method"] for c in lazy.candidates}
+    assert not set(skipped) & costed
+    if len(skipped) == 2:  # neither could win: the spread was never computed
+        assert lazy.facts["sampling_spread"] == -1.0
+        assert all(re.search(r"at 1024 samples alone \(>= [0-9.]+ s\) exceed", lazy.reasons[m]) for m in skipped)
+    else:
+        assert lazy.facts["sampling_spread"] == pytest.approx(full.facts["sampling_spread"])
