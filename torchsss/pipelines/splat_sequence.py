@@ -3,10 +3,12 @@
 Every frame is rendered as :func:`~torchsss.pipelines.splat.render_splat` renders it (camera G-buffer,
 :class:`~torchsss.modules.splat.SplatTranslucency` per light, :math:`L = F_t/\\pi\\,B`); only the splat sources
 differ. With ``coherent=False`` they are the covered pixels of a fresh light view each frame, so the frames are
-``render_splat``'s exactly. With ``coherent=True`` (Shah 2007, sec. 6.5.2) each light keeps its samples attached
-to the surface (:func:`~torchsss.geometry.coherence.coherent_light_samples`, ``mode="partition"``): the positions
-follow the mesh from frame to frame, while the fluxes are the current light view's, split among the kept samples,
-so the total flux of every frame is the fresh light view's. The meshes must share one topology (the samples are
+``render_splat``'s exactly with ``flux="facet"`` (Shah's flux, each pixel's footprint, which the coherent samples
+carry too; ``render_splat`` defaults to the shading normals' convention, ``torchsss.geometry.shading_flux``). With
+``coherent=True`` (Shah 2007, sec. 6.5.2) each light keeps its samples attached to the surface
+(:func:`~torchsss.geometry.coherence.coherent_light_samples`, ``mode="partition"``): the positions follow the mesh
+from frame to frame, while the fluxes are the current light view's, split among the kept samples, so the total flux
+of every frame is the fresh light view's. The meshes must share one topology (the samples are
 stored as face id and barycentrics).
 """
 
@@ -141,7 +143,8 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
                     mesh, light, n, profile.eta, previous[k], radius_px=radius_px, weights=weights)
                 reused, new = reused + st["reused"], new + st["new"]
             else:
-                pos, flux, _, _ = _light_sources(mesh, light, n, profile.eta, 0, max_stretch)
+                # Shah's flux, as the coherent samples carry it (their light-view pixel's footprint)
+                pos, flux, _, _ = _light_sources(mesh, light, n, profile.eta, 0, max_stretch, flux="facet")
                 src_pos, src_flux = pos.unsqueeze(0), flux.unsqueeze(0)
             splats += int(src_pos.shape[1])
             total = total + src_flux[0].sum(0)
