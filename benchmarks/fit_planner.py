@@ -8,8 +8,9 @@ time constants on the symmetric
 log ratio (with ``--times``; the time constants are otherwise kept: they are set by hand from the same rows,
 since a free fit of a few scenes drives some terms to zero). Prints the fitted constants as a Python dict (to paste
 into ``MODEL``) and the worst under- and over-prediction per method, and writes ``results/planner_fit.json``.
-Also reads the error rows of ``results/planner_v1_rows.json`` and ``results/planner_v2_rows.json`` (the scenes of
-the first two verification runs, which joined the calibration set; see :data:`VERIFICATION_ROWS`).
+Also reads the error rows of ``results/planner_v1_rows.json`` to ``planner_v4_rows.json`` (the scenes of the first
+four verification runs, which joined the calibration set; see :data:`VERIFICATION_ROWS`); splat's rows come from
+``results/splat_calibration_rows.json`` alone where it is here (:data:`SPLAT_ROWS`).
 
 With ``--cv``: leave-one-scene-out cross-validation of the error model. For each calibration scene the error
 constants are refitted without it and its rows predicted; per method, the smallest margin (of
@@ -74,6 +75,8 @@ SEEN_FULL = frozenset({"icdf", "hybrid"})
 
 def load_rows() -> list[tuple[object, SceneFacts, dict]]:
     out = []
+    splat_rows = HERE / "results" / SPLAT_ROWS
+    skip_splat = splat_rows.exists()
     for scene in calibration_scenes(96):
         path = HERE / "results" / "trade" / scene_key(scene) / "trade.json"
         if not path.exists():
@@ -81,7 +84,7 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
         data = json.loads(path.read_text())
         facts = SceneFacts.from_scene(scene)
         for row in data["rows"]:
-            if "refused" in row:
+            if "refused" in row or (skip_splat and row["method"] == "splat"):
                 continue
             knobs = dict(row["knobs"])
             dec = knobs.pop("decimate", None)
@@ -91,21 +94,28 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
         out.append((scene, facts, {"method": "reference", "knobs": {"eps": 0.01}, "decimate": None,
                                    "rel_rmse": 0.0, "setup_s": data["reference"]["setup_s"],
                                    "frame_s": data["reference"]["frame_s"], "truth": True}))
-    # error rows (no separate setup/frame times) of the scenes of the first two verification runs
+    # error rows (no separate setup/frame times) of the scenes of the verification runs, and splat's calibration rows
     from bench_planner import make_scene
+    from bench_splat_calibration import scene_of
 
-    for name in VERIFICATION_ROWS:
+    for name in (*VERIFICATION_ROWS, SPLAT_ROWS):
         path = HERE / "results" / name
         if not path.exists():
             continue
+        splat_only = name == SPLAT_ROWS
         for entry in json.loads(path.read_text())["scenes"]:
             try:
-                scene = make_scene(entry["scene"], *entry["spec"])
+                scene = scene_of(entry["scene"], entry["spec"]) if splat_only else make_scene(entry["scene"],
+                                                                                              *entry["spec"])
             except ValueError:  # a shared mesh that is not here
                 continue
             facts = SceneFacts.from_scene(scene)
             for row in entry["rows"]:
+                if (row["method"] == "splat" and skip_splat and not splat_only) or (splat_only and
+                                                                                    row["method"] != "splat"):
+                    continue
                 knobs = dict(row["knobs"])
+                knobs.pop("flux", None)
                 dec = knobs.pop("decimate", None)
                 if dec and row["method"] in SEEN_FULL:
                     continue
@@ -119,6 +129,12 @@ def load_rows() -> list[tuple[object, SceneFacts, dict]]:
 #: and splat's error constants were refitted with them; the other methods' constants predate them).
 VERIFICATION_ROWS = ("planner_v1_rows.json", "planner_v2_rows.json", "planner_v3_rows.json",
                      "planner_v4_rows.json")
+#: Splat's rows re-measured on the scenes of :data:`VERIFICATION_ROWS` and of the calibration trades (96 x 96) with the
+#: current splat renderer, at every configuration it is planned at (``bench_splat_calibration.py``: oversample 1, 2,
+#: 4 and 8; since 2026-11-28 its light view's flux follows the shading normals, ``torchsss.geometry.shading_flux``).
+#: Where this file is here, splat is fitted to it alone: the other files' splat rows (and the calibration trades')
+#: were rendered by the earlier splat.
+SPLAT_ROWS = "splat_calibration_rows.json"
 
 
 def _methods() -> list[str]:

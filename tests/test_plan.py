@@ -483,13 +483,13 @@ def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
 def test_rule_splat_budget_tighter_for_lower_tolerance():
     # a back-lit 40 mm skin1 spot: the profile's tail beyond r_max lies on the object, the budget matters
     s = _scene(mesh="spot", size=40.0, res=32, light=(-0.5, 0.4, -1.0))
-    loose, tight = plan(s, 0.3, methods=["splat"]), plan(s, 0.04, methods=["splat"])
+    loose, tight = plan(s, 0.3, methods=["splat"]), plan(s, 0.05, methods=["splat"])
     assert loose.method == tight.method == "splat"
     mesh = s.load_mesh()
     grid = {id(p): splat_grid(mesh, s.material, p.knobs["eps"], oversample=p.knobs["oversample"])
             for p in (loose, tight)}
     assert grid[id(tight)] >= grid[id(loose)] >= MIN_GRID and loose.predicted_frame_s <= tight.predicted_frame_s
-    assert tight.predicted_error * MARGINS["splat"] <= 0.04 < loose.predicted_error * MARGINS["splat"]
+    assert tight.predicted_error * MARGINS["splat"] <= 0.05 < loose.predicted_error * MARGINS["splat"]
     assert "splat_budget" in tight.reasons
 
 
