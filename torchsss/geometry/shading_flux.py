@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
+from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
 from torchsss.geometry.gbuffer import LightView
@@ -43,14 +43,9 @@ SHADING_FLUX_MIN_COS = 0.05
 
 
 def _gaussian_blur(x: Tensor, sigma: float) -> Tensor:
-    """Separable Gaussian of ``sigma`` pixels (radius 3 sigma, zero padding) over :math:`(1, C, H, W)`."""
-    r = max(1, math.ceil(3.0 * sigma))
-    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-    g = torch.exp(-0.5 * (t / sigma) ** 2)
-    g = g / g.sum()
-    c = x.shape[1]
-    x = F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, r), groups=c)
-    return F.conv2d(x, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), padding=(r, 0), groups=c)
+    """A Gaussian (kornia's) of ``sigma`` pixels (radius 3 sigma, zero padding) over :math:`(1, C, H, W)`."""
+    k = 2 * max(1, math.ceil(3.0 * sigma)) + 1
+    return gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="constant")
 
 
 def shading_flux_scale(lv: LightView, mesh: Mesh, light: Light, *, sigma_px: float = SHADING_FLUX_SIGMA,
