@@ -70,7 +70,7 @@ def test_a_scans_needless_density_is_not_charged_to_its_decimated_sources(shared
     scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, width=256, height=256))
     f = SceneFacts.from_scene(scene)
     assert math.sqrt(f.area_mm2 / f.sources[0]) < MODEL["ref_base"] * f.spacing_mm
-    p = plan(scene, 0.02)
+    p = plan(scene, 0.02, methods=["reference"])  # the reference's own 2% plan (splat's is faster since 2026-11-29)
     assert p.method == "reference" and p.knobs.get("source_faces", f.faces) < f.faces / 10
     assert p.predicted_error * MARGINS["reference"] <= 0.02
 

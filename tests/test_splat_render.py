@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -10,8 +11,9 @@ from torch.func import functional_call
 
 from torchsss.geometry import sphere
 from torchsss.geometry.camera import Camera
+from torchsss.geometry.shadow import bounding_sphere
 from torchsss.modules import DipoleMaterial, SplatTranslucency
-from torchsss.pipelines.splat import render_splat, splat_grid
+from torchsss.pipelines.splat import MIN_GRID, render_splat, splat_grid
 from torchsss.registry import render_scene
 from torchsss.scene import Material, Scene
 
@@ -69,6 +71,8 @@ def test_splat_grid_budget_and_errors():
         splat_grid(mesh, skin, max_grid=1)
     with pytest.raises(ValueError, match="oversample"):
         splat_grid(mesh, skin, oversample=0.0)
+    with pytest.raises(ValueError, match="min_grid"):
+        splat_grid(mesh, skin, min_grid=0)
     with pytest.raises(TypeError, match="material"):
         SplatTranslucency("skin1")
     with pytest.raises(ValueError, match="eps"):
@@ -102,3 +106,29 @@ def test_module_gradcheck_wrt_flux_and_material():
 
     raw = (mat.raw_sigma_a.detach().clone().requires_grad_(), mat.raw_sigma_s_prime.detach().clone().requires_grad_())
     assert torch.autograd.gradcheck(by_material, raw)
+
+
+def _h(material: Material, eps: float = 0.01) -> float:
+    """The smallest channel's splat spacing (mm), from the profile module."""
+    return float(DipoleMaterial.from_preset(material.name).double().spacing(eps).min())
+
+
+def test_splat_grid_floor_scales_with_oversample():
+    # a 5 mm potato sphere: the profile's spacing (mm) asks for fewer texels than MIN_GRID across the object, so the
+    # light view samples the irradiance at MIN_GRID x oversample texels (a fixed floor left the error of such
+    # objects where no oversampling moved it: benchmarks/results/splat_calibration.md)
+    mesh = sphere(5.0, 3)
+    potato = Material.from_json("potato")
+    _, radius = bounding_sphere(mesh)
+    assert 2.0 * float(radius) / _h(potato) < MIN_GRID  # the profile asks for fewer
+    assert [splat_grid(mesh, potato, oversample=s) for s in (1.0, 2.0, 4.0, 8.0)] == [MIN_GRID * s for s in
+                                                                                     (1, 2, 4, 8)]
+    assert splat_grid(mesh, potato, oversample=0.5) == MIN_GRID // 2
+    assert splat_grid(mesh, potato, oversample=8.0, max_grid=100) == 100
+    assert splat_grid(mesh, potato, oversample=1.0, min_grid=8) == 8
+    # where the profile asks for more, the floor does not bind: the budget's own n = ceil(s 2R / h)
+    big, marble = sphere(60.0, 3), Material.from_json("marble")
+    _, r_big = bounding_sphere(big)
+    n = 2.0 * float(r_big) / _h(marble)
+    assert n > MIN_GRID
+    assert splat_grid(big, marble, oversample=2.0) == min(512, math.ceil(2.0 * n))

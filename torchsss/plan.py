@@ -137,11 +137,12 @@ MODEL: dict[str, float] = {
     "ref_t_pair": 3.0e-7, "ref_t_src": 1.06e-05, "ref_t_px": 1.21e-05, "ref_s0": 0.0102, "ref_s_src": 5.77e-06,
     "ref_err_floor": 0.00241, "ref_err_n": 0.00463, "ref_err_alias": 1.0, "ref_base": 0.2,
     # splat: frame = t_splat * splats * footprint_px * lights + t_texel * grid^2 * lights + f0;
-    # error = hypot(floor * u^u_floor, max(trunc * u^u_trunc * d^q_depth, 1) * cut, alias * u^u_alias * w / s^2)
+    # error = hypot(floor * u^u_floor, max(trunc * u^u_trunc * d^q_depth, 1) * cut, alias * u^u_alias * w / s^2,
+    #               obj * [convex: obj_convex] * (32 / grid)^obj_p)
     # with cut the profile's energy between r_max(eps) and the object's diameter (at most eps: the truncation drops
     # it from every splat whatever the light; nothing when r_max spans the object), s the light view's texels
-    # per splat spacing as built (the grid clamped to [32, 512]) and w the share of that aliasing the image sees
-    # (_Profile.alias_share: the grid follows the finest channel, the image's error the brightest), u =
+    # per splat spacing as built (the grid clamped to [32 x oversample, 512]) and w the share of that aliasing the
+    # image sees (_Profile.alias_share: the grid follows the finest channel, the image's error the brightest), u =
     # max(unlit, 0.1), d = 1 + u * thickness * sigma_tr,min (light that crossed the object: the far field).
     # Fitted 2026-11-27 (session 9) on 34 scenes (the 7 calibration scenes and the 27 of four verification runs,
     # results/planner_v1_rows.json .. planner_v4_rows.json). Without w the aliasing term had predicted 3-6x the
@@ -156,8 +157,17 @@ MODEL: dict[str, float] = {
     # every oversampling with the faces' projected area; now 1.17% u^0.2 (0.65% front-lit, 1.0% side-lit, 1.16%
     # back-lit). Earlier constants: floor 0.0148, trunc 1.04, alias 0.146, u_floor 0.0378, u_trunc 2.48, u_alias
     # 0.548, q_depth 2.2 (u_trunc and q_depth are now at the fit's bound of 3)
-    "splat_floor": 0.0117, "splat_trunc": 0.646, "splat_alias": 0.148,
-    "splat_u_floor": 0.197, "splat_u_trunc": 3.0, "splat_u_alias": 0.503, "splat_q_depth": 2.9,
+    # Refitted 2026-11-29 with the obj term, after the light view's floor began to scale with the oversampling
+    # (splat.MIN_GRID; the rows re-measured, results/splat_calibration.md): what the floor had stood for on small or
+    # long-scattering objects was their light view clamped at 32 texels at every oversampling (a side-lit 8 mm
+    # potato torus 1.92% at every configuration; 0.93 / 0.53 / 0.30% at 64 / 128 / 256). Floor 1.17% u^0.2 -> 0.47%
+    # u^0.56; obj 1.58% (32 / grid)^0.67 on objects that are not convex, none on convex ones (fitted to the bound:
+    # spheres and slabs measured 0.14-1.03% at 32 texels, 0.05-0.35% at 64). In sample at margin 1.1, 598
+    # configuration x tolerance pairs accepted, 9 falsely, where the constants before accepted 516 (7). Earlier
+    # constants: floor 0.0117, trunc 0.646, alias 0.148, u_floor 0.197, u_trunc 3.0, u_alias 0.503, q_depth 2.9
+    "splat_floor": 0.00467, "splat_trunc": 0.674, "splat_alias": 0.181,
+    "splat_u_floor": 0.557, "splat_u_trunc": 3.0, "splat_u_alias": 0.676, "splat_q_depth": 2.89,
+    "splat_obj": 0.0158, "splat_obj_p": 0.674, "splat_obj_convex": 3e-05,
     # icdf/hybrid: frame = t_pair * pixels * N + f0; setup = s0 + s_face * faces + s_texel * res^2;
     # error = hypot(floor (hybrid: * u^u_floor), a * [icdf: q^q_spread] * u^u * d^q_depth * (4096 / N)^p).
     # icdf refitted 2026-11-27 (session 10) with the one-sample spread q (SceneFacts.sampling_spread) on the 34
@@ -1116,16 +1126,20 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     if method == "splat":
         eps, over = float(knobs.get("eps", 0.01)), float(knobs.get("oversample", 2.0))
         h = prof.spacing(eps)
-        grid = min(512, max(MIN_GRID, math.ceil(over * 2.0 * facts.radius_mm / h)))
+        grid = min(512, max(2, math.ceil(over * max(2.0 * facts.radius_mm / h, MIN_GRID))))  # as splat_grid
         texel = 2.0 * facts.radius_mm / grid
-        # the light view's texels per splat spacing as built (the grid is clamped to [MIN_GRID, 512]: a small
+        # the light view's texels per splat spacing as built (at least MIN_GRID x oversample, at most 512: a small
         # object is oversampled far more than asked), and the truncated energy that lies on the object: a splat
         # cut at r_max drops the profile's tail between r_max and the object's diameter, none when r_max spans it
         over_eff = h / texel
         r = prof.r_max(eps)
         cut = prof.tail_between(r, 2.0 * facts.radius_mm)
         u, d = max(facts.unlit, 0.1), depth(facts)
-        err = math.sqrt((m["splat_floor"] * u ** m["splat_u_floor"]) ** 2
+        # and the irradiance itself sampled at the object's scale: MIN_GRID texels across it at oversample 1 (a side-lit
+        # 8 mm potato torus 1.9% at grid 32, 0.5% at 128, where its profile asks for a handful of texels), less on a
+        # convex object, whose irradiance n.l has no shadows and varies smoothly
+        obj = m["splat_obj"] * (m["splat_obj_convex"] if facts.convex else 1.0) * (MIN_GRID / grid) ** m["splat_obj_p"]
+        err = math.sqrt((m["splat_floor"] * u ** m["splat_u_floor"]) ** 2 + obj ** 2
                         + (m["splat_alias"] * u ** m["splat_u_alias"] * prof.alias_share(eps) / over_eff ** 2) ** 2
                         + (max(m["splat_trunc"] * u ** m["splat_u_trunc"] * d ** m["splat_q_depth"], 1.0) * cut) ** 2)
         footprint = min(px, math.pi * (r / facts.pixel_mm) ** 2)
@@ -1476,18 +1490,21 @@ def _plan(scene: Scene, tolerance: float, frames: int, methods, trade, model, me
     # Lensch's error is at least its floor: when that misses the tolerance (and Lensch was not asked for by name or
     # measured), it is not costed, and its throughput estimate is not computed
     floor = m["lensch_floor"] * MARGINS["lensch"]
-    lensch_out = methods is None and trade is None and floor > tolerance
+    chosen = methods is None and trade is None  # every applicable method, none measured: the gates below apply
+    lensch_out = chosen and floor > tolerance
     if lensch_out:
         methods = [x for x in applicable_methods(scene) if x != "lensch"]
     # nor when its setup and frames alone (before the throughput and the blending fit) cost more than the best
     # other plan: its throughput estimate is the costliest fact (0.3 s on a 40k-face scan)
     lensch_bound = m["lensch_s0"] + frames * m["lensch_f0"]
-    lensch_last = (not lensch_out and methods is None and trade is None and "lensch" in applicable_methods(scene))
+    lensch_last = not lensch_out and chosen and "lensch" in applicable_methods(scene)
     # likewise the Monte Carlo estimators: their one-sample spread (0.15 s of a small scene's 0.25 s of facts) only
-    # where their setup and frames at the fewest samples could beat the best other plan
-    sampled_last = methods is None and trade is None
+    # where their setup and frames at the fewest samples could beat the best other plan (also when Lensch's floor
+    # ruled it out above: until 2026-11-29 that narrowed ``methods`` and switched this gate off at 1%, where every
+    # first plan of a scene computed the spread, 0.2-0.4 s of its 0.3-0.7 s)
+    sampled_last = chosen
     later = ("lensch",) * lensch_last + ("icdf", "hybrid") * sampled_last
-    first = [x for x in applicable_methods(scene) if x not in later] if later else methods
+    first = [x for x in (methods or applicable_methods(scene)) if x not in later] if later else methods
     facts = SceneFacts.from_scene(scene, mesh, throughput=not (lensch_out or lensch_last), spread=not sampled_last)
     measured = _measured(trade)
     warm = warm_kernels()

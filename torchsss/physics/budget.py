@@ -86,7 +86,11 @@ def profile_tail_fraction(radius, sigma_a, sigma_s_prime, eta=1.3) -> Tensor:
         1.0
     """
     r = as_float_tensor(radius, "radius")
-    terms = dipole_terms(*_material_like(sigma_a, sigma_s_prime, eta, r))
+    return _tail_fraction(r, dipole_terms(*_material_like(sigma_a, sigma_s_prime, eta, r)))
+
+
+def _tail_fraction(r: Tensor, terms) -> Tensor:
+    """:func:`profile_tail_fraction` of a validated material's :func:`dipole_terms` (the bisections' inner loop)."""
     sig = terms.sigma_tr
     num = 0.0
     den = 0.0
@@ -120,10 +124,11 @@ def r_max(sigma_a, sigma_s_prime, eta=1.3, eps: float = 0.01) -> Tensor:
     eps = _check_eps(eps)
     sa, ss, et, out_dtype = _material64(sigma_a, sigma_s_prime, eta)
 
-    def tail(x: Tensor) -> Tensor:
-        return profile_tail_fraction(x, sa, ss, et)
+    terms = dipole_terms(sa, ss, et)  # validated once: the bisection evaluates the tail ~250 times
 
-    terms = dipole_terms(sa, ss, et)
+    def tail(x: Tensor) -> Tensor:
+        return _tail_fraction(x, terms)
+
     hi = terms.z_v.clone()
     for _ in range(_MAX_DOUBLINGS):
         grow = tail(hi) > eps

@@ -81,9 +81,15 @@ def _spacing(material: Material | nn.Module, eps: float) -> float:
     return float(material.spacing(eps).min())
 
 
-#: The coarsest light view: the irradiance (n.l, shadows) varies on the object's own scale however smooth the
+#: The coarsest light view at ``oversample`` 1, in texels across the object (:func:`splat_grid` holds at least
+#: ``oversample`` times this many): the irradiance (n.l, shadows) varies on the object's own scale however smooth the
 #: profile is. A 5 mm chicken1 bunny (scattering length > the object) got 5-13 texels from the budget and measured
-#: 5-14% against the reference at 128x128; 16 texels 1.1%, 32 0.86%.
+#: 5-14% against the reference at 128x128; 16 texels 1.1%, 32 0.86%. Where the profile's spacing asks for fewer
+#: texels than this the light view samples the irradiance, not the profile, and ``oversample`` refines that as well
+#: (since 2026-11-29; a fixed 32 had made the error of small or long-scattering objects a floor that no oversampling
+#: moved): at eps 0.01, grid 32 / 64 / 128 / 256, a side-lit 8 mm potato torus measured 1.92 / 0.93 / 0.53 / 0.30%,
+#: a side-lit 30 mm chicken1 teapot 1.78 / 0.59 / 0.49 / 0.33% and a front-lit 10 mm skin1 igea 0.94 / 0.50 / 0.34 /
+#: 0.36% (``benchmarks/results/splat_calibration.md``).
 MIN_GRID = 32
 
 #: The longest light-view footprint (texels) one splat stands for (:func:`~torchsss.geometry.grazing.split_grazing`):
@@ -98,9 +104,10 @@ _LIGHT_VIEW_MIN_COS = 1e-2  # light_view's default min_cos: its area is footprin
 
 def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | nn.Module], eps: float = 0.01,
                max_grid: int = 512, oversample: float = 2.0, min_grid: int = MIN_GRID) -> int:
-    """Light-view resolution :math:`n = \\lceil s \\cdot 2R / h(\\epsilon) \\rceil` (module docstring), clamped.
+    """Light-view resolution :math:`n = \\lceil s \\cdot \\max(2R / h(\\epsilon), n_0) \\rceil` (module docstring).
 
-    At least ``min_grid`` (:data:`MIN_GRID`), at most ``max_grid``.
+    ``s`` is ``oversample``, :math:`n_0` ``min_grid`` (:data:`MIN_GRID`: the texels across the object that sample
+    the irradiance itself where the profile's spacing asks for fewer); at most ``max_grid``.
 
     With several materials (a multi-object scene, ``mesh`` the merged mesh), :math:`h` is the smallest splat
     spacing of all of them: the most demanding material sets the budget.
@@ -124,7 +131,7 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
                         f"{material!r}")
     h = min(_spacing(mat, eps) for mat in materials)
     _, radius = bounding_sphere(mesh)
-    return int(min(max_grid, max(min_grid, 2, math.ceil(oversample * 2.0 * float(radius) / h))))
+    return int(min(max_grid, max(2, math.ceil(oversample * max(2.0 * float(radius) / h, float(min_grid))))))
 
 
 def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int,
@@ -179,7 +186,8 @@ class SplatRenderer(Renderer):
         eps: splat budget tolerance (r_max and the splat spacing).
         grid: light-view resolution (None: :func:`splat_grid`).
         max_grid: cap of the automatic grid.
-        oversample: factor on the budget's grid.
+        oversample: factor on the budget's grid, and on its floor :data:`MIN_GRID` (texels across the object:
+            a small or long-scattering object's light view refines with it too).
         max_stretch: the longest light-view footprint, in texels, one splat stands for (:data:`MAX_STRETCH`); longer
             ones (grazing light) are cut into pieces (:func:`~torchsss.geometry.grazing.split_grazing`). None: uncut,
             Shah's one splat per light-view pixel.
@@ -315,7 +323,8 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material | nn.Module]], l
         eps: splat budget tolerance (r_max and the splat spacing).
         grid: light-view resolution (default: :func:`splat_grid` of the merged mesh and all materials).
         max_grid: cap of the automatic grid.
-        oversample: factor on the budget's grid.
+        oversample: factor on the budget's grid, and on its floor :data:`MIN_GRID` (texels across the object:
+            a small or long-scattering object's light view refines with it too).
         method: splat method of :func:`~torchsss.ops.splat.splat_radiosity`.
         clip_objects: discard splats that land on another object (Shah's ID check); False lets light cross
             between objects (only for comparison).
