@@ -255,8 +255,8 @@ def bench_materials(setup: SceneSetup, cfg: dict) -> list[dict]:
         material = Material.from_json(name)
         sa, ss, eta = material.tensors()
         terms = dipole_terms(sa, ss, eta)
-        grid = splat_grid(setup.mesh, material, EPS, cfg["max_grid"], OVERSAMPLE, min_grid=2)
-        grid_free = splat_grid(setup.mesh, material, EPS, 1 << 30, OVERSAMPLE, min_grid=2)
+        grid = splat_grid(setup.mesh, material, EPS, cfg["max_grid"], OVERSAMPLE)  # as render_splat builds it
+        grid_free = splat_grid(setup.mesh, material, EPS, 1 << 30, OVERSAMPLE)  # the same, uncapped
         res, times = timed_frames(lambda material=material: render_splat(
             setup.mesh, material, setup.lights, setup.camera, eps=EPS, max_grid=cfg["max_grid"]),
             cfg["repeats"], cfg["row_budget_s"])
