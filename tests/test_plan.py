@@ -805,3 +805,41 @@ def test_estimators_costed_only_where_they_could_win(spec):
         assert all(re.search(r"at 1024 samples alone \(>= [0-9.]+ s\) exceed", lazy.reasons[m]) for m in skipped)
     else:
         assert lazy.facts["sampling_spread"] == pytest.approx(full.facts["sampling_spread"])
+
+
+def test_estimators_spread_gated_when_lensch_is_out(monkeypatch):
+    # at 1% Lensch's floor rules Lensch out; the Monte Carlo estimators' one-sample spread is still computed only
+    # where they could beat the best other plan (a warm process: the reference's frames are cheap and the
+    # estimators' setup and frames at their fewest samples cannot win; until 2026-11-29 the gate was off there)
+    import torchsss.plan as planner
+
+    monkeypatch.setattr(planner, "warm_kernels", lambda *a, **k: frozenset({"plain", "split", "truncated"}))
+    s = _scene(res=16, size=21.0)
+    p = plan(s, 0.01)
+    assert "lensch" in p.reasons and "exceed the best other plan" in p.reasons["icdf"]
+    assert p.facts["sampling_spread"] == -1.0
+    assert not any(c["method"] in ("icdf", "hybrid", "lensch") for c in p.candidates)
+    # the gate skips work, not plans: with the estimators costed by name the method chosen is the same
+    q = plan(s, 0.01, methods=["reference", "splat", "icdf", "hybrid"])
+    assert (q.method, q.knobs) == (p.method, p.knobs)
+
+
+def test_splat_object_scale_term_falls_with_the_grid():
+    # a side-lit 8 mm potato torus: its profile asks for fewer than MIN_GRID texels, so the grid is MIN_GRID x
+    # oversample and the predicted error falls with the oversampling (measured 1.92 / 0.93 / 0.53%,
+    # benchmarks/results/splat_calibration.md); a convex object is charged no object-scale term
+    torus = _scene(mesh="torus", size=8.0, material="potato", res=32, light=(1.0, 0.3, 0.1))
+    f = SceneFacts.from_scene(torus)
+    assert not f.convex
+    errs = [predict("splat", {"eps": 0.01, "oversample": o}, f, torus.material)["error"] for o in (1.0, 2.0, 4.0)]
+    assert errs[0] > errs[1] > errs[2]
+    obj = MODEL["splat_obj"] * (MIN_GRID / (MIN_GRID * 2.0)) ** MODEL["splat_obj_p"]
+    assert errs[1] >= obj  # the term is part of the hypot
+    ball = _scene(mesh="sphere", size=8.0, material="potato", res=32, light=(1.0, 0.3, 0.1))
+    fb = SceneFacts.from_scene(ball)
+    assert fb.convex
+    free = predict("splat", {"eps": 0.01, "oversample": 1.0}, fb, ball.material, model={"splat_obj_convex": 0.0})
+    same = predict("splat", {"eps": 0.01, "oversample": 1.0}, fb, ball.material)
+    assert same["error"] == pytest.approx(free["error"], rel=1e-3)
+    charged = predict("splat", {"eps": 0.01, "oversample": 1.0}, fb, ball.material, model={"splat_obj_convex": 1.0})
+    assert charged["error"] > same["error"]

@@ -93,7 +93,7 @@ from torchsss.physics.dipole import total_diffuse_reflectance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
 from torchsss.pipelines.chang import LOCAL_STRIDES, HybridRenderer, profile_rp
-from torchsss.pipelines.splat import MIN_GRID
+from torchsss.pipelines.splat import MIN_GRID, grid_for
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
@@ -1126,7 +1126,7 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
     if method == "splat":
         eps, over = float(knobs.get("eps", 0.01)), float(knobs.get("oversample", 2.0))
         h = prof.spacing(eps)
-        grid = min(512, max(2, math.ceil(over * max(2.0 * facts.radius_mm / h, MIN_GRID))))  # as splat_grid
+        grid = grid_for(2.0 * facts.radius_mm, h, over)  # splat_grid's rule
         texel = 2.0 * facts.radius_mm / grid
         # the light view's texels per splat spacing as built (at least MIN_GRID x oversample, at most 512: a small
         # object is oversampled far more than asked), and the truncated energy that lies on the object: a splat

@@ -66,7 +66,7 @@ from torchsss.pipelines.modifiers import at_sources, vertex_modifiers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_lights, check_objects
 from torchsss.pipelines.specular import shadow_mapped_specular
 
-__all__ = ["SplatRenderer", "render_splat", "render_splat_objects", "splat_grid"]
+__all__ = ["SplatRenderer", "grid_for", "render_splat", "render_splat_objects", "splat_grid"]
 
 
 @functools.lru_cache(maxsize=256)
@@ -131,7 +131,22 @@ def splat_grid(mesh: Mesh, material: Material | nn.Module | Sequence[Material | 
                         f"{material!r}")
     h = min(_spacing(mat, eps) for mat in materials)
     _, radius = bounding_sphere(mesh)
-    return int(min(max_grid, max(2, math.ceil(oversample * max(2.0 * float(radius) / h, float(min_grid))))))
+    return grid_for(2.0 * float(radius), h, oversample, max_grid, min_grid)
+
+
+def grid_for(diameter_mm: float, spacing_mm: float, oversample: float = 2.0, max_grid: int = 512,
+             min_grid: int = MIN_GRID) -> int:
+    """:func:`splat_grid`'s rule from the numbers alone (the planner predicts with it).
+
+    Texels across an object of ``diameter_mm`` for splats ``spacing_mm`` apart,
+    :math:`\\lceil s \\max(D / h, n_0) \\rceil` in :math:`[2, \\text{max\\_grid}]`.
+    Arguments are trusted (:func:`splat_grid` checks its own).
+
+    Examples:
+        >>> grid_for(10.0, 1.0, oversample=1.0), grid_for(10.0, 1.0), grid_for(100.0, 1.0), grid_for(1e4, 1.0)
+        (32, 64, 200, 512)
+    """
+    return int(min(max_grid, max(2, math.ceil(oversample * max(diameter_mm / spacing_mm, float(min_grid))))))
 
 
 def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int,
