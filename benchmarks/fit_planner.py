@@ -25,6 +25,14 @@ Usage::
     python benchmarks/fit_planner.py --cv      # + leave-one-scene-out margins (results/planner_cv.json)
     python benchmarks/fit_planner.py --times-only   # the setup and frame constants alone (error constants kept)
     python benchmarks/fit_planner.py --cv --methods splat   # one method's fit and margin (the others' kept)
+    python benchmarks/fit_planner.py --times-from results/planner_time_rows_main.json \
+        results/planner_time_rows_fresh.json
+        # the reference's and splat's time constants on verification runs' setup + frame (planner_time_fit.json)
+
+``results/planner_time_rows_{main,fresh}.json`` are the rows the time constants of 2026-11-29 were read from: the
+sweep and planned rows of that day's verification runs of the main and fresh sets (one thread, the two side by side,
+splat's gather still at its earlier reach rule) with splat's rows replaced by the same configurations re-timed after
+``GATHER_REACH`` became 0.01 (the timing of ``bench_splat_paths.py``; its table gives splat's constants).
 """
 
 from __future__ import annotations
@@ -62,7 +70,8 @@ ERROR_FLOOR = 0.003
 #: Weight of an under-predicted error against an over-predicted one.
 UNDER = 10.0
 EXPONENTS = {"splat_u_floor", "splat_u_trunc", "splat_u_alias", "icdf_u", "hybrid_u", "icdf_p", "hybrid_p",
-             "icdf_q_spread", "hybrid_u_floor", "splat_q_depth", "icdf_q_depth", "hybrid_q_depth", "splat_obj_p"}
+             "icdf_q_spread", "hybrid_u_floor", "splat_q_depth", "icdf_q_depth", "hybrid_q_depth", "splat_obj_p",
+             "icdf_face_p"}
 
 
 #: Methods whose rows with a scene-level ``decimate`` are left out: the camera saw the decimated mesh, which no plan
@@ -137,6 +146,65 @@ VERIFICATION_ROWS = ("planner_v1_rows.json", "planner_v2_rows.json", "planner_v3
 SPLAT_ROWS = "splat_calibration_rows.json"
 
 
+#: The time constants ``--times-from`` fits, per method, on a verification run's setup + one frame (the splat
+#: and reference setups' constant parts are kept: the rows do not separate them from the frame).
+TOTAL_KEYS = {"reference": ["fused_t_pair", "ref_t_src", "ref_t_px"],
+              "splat": ["splat_t_gather", "splat_t_texel", "splat_f0"],
+              "icdf": ["icdf_s0", "icdf_s_face", "icdf_face_p", "icdf_f0"], "hybrid": ["hybrid_s0", "hybrid_f0"]}
+
+
+def load_time_rows(paths: list[Path]) -> list[tuple[object, SceneFacts, dict]]:
+    """The sweep and planned rows of verification runs (``bench_planner.py``'s ``<name>_rows.json``) for a time fit.
+
+    Each row's ``time_s`` is its setup and one frame, measured warm: the run's truth compiled the plain pair sum
+    first, and splat's truncated gather is compiled by the first splat row that asks for it (:data:`WARM_ALL`: a
+    run's first scene's splat rows before that row are predicted as compiled too).
+    """
+    from bench_planner import SETS, make_scene
+
+    specs = {name: spec for scenes in SETS.values() for name, spec in scenes.items()}
+    out = []
+    for path in paths:
+        for name, rows in json.loads(Path(path).read_text()).items():
+            scene = make_scene(name, *specs[name])
+            facts = SceneFacts.from_scene(scene)
+            for row in rows:
+                if row["kind"] == "truth":
+                    continue
+                knobs = dict(row["knobs"])
+                dec = knobs.pop("decimate", None)
+                out.append((scene, facts, {**row, "knobs": knobs, "decimate": dec, "set": Path(path).name}))
+    return out
+
+
+def times_from(paths: list[Path]) -> dict:
+    """Fit :data:`TOTAL_KEYS` to verification rows; print predicted / measured per method and file."""
+    rows = load_time_rows(paths)
+    fitted: dict[str, float] = {}
+    for method, keys in TOTAL_KEYS.items():
+        mine = [r for r in rows if r[2]["method"] == method]
+        fitted.update(fit(mine, keys, "time_s", asymmetric=False, base=fitted, warm=WARM_ALL))
+    model = {**MODEL, **fitted}
+    report = {}
+    for label, m in (("before", MODEL), ("after", model)):
+        for method in ERROR_KEYS:  # the other methods' rows are reported, not fitted (their frames share the rate)
+            for name in sorted({r[2]["set"] for r in rows}):
+                q = []
+                for scene, facts, row in rows:
+                    if row["method"] == method and row["set"] == name:
+                        p = _pred(row, facts, scene, m, WARM_ALL)
+                        q.append((p["setup_s"] + p["frame_s"]) / row["time_s"])
+                if q:
+                    q = sorted(q)
+                    report[f"{label} {method} {name}"] = [round(q[len(q) // 10], 3), round(float(np.median(q)), 3),
+                                                          round(q[(9 * len(q)) // 10], 3), len(q)]
+                    print(f"{label:6s} {method:9s} {name:28s} predicted/measured p10, median, p90, rows: "
+                          f"{report[f'{label} {method} {name}']}")
+    print("MODEL updates:")
+    print(json.dumps({k: float(f"{v:.3g}") for k, v in fitted.items()}, indent=1))
+    return {"fitted": fitted, "predicted_over_measured": report}
+
+
 def _methods() -> list[str]:
     """The methods of ``--methods m1 m2 ...`` (default: all)."""
     if "--methods" not in sys.argv:
@@ -155,6 +223,8 @@ def _methods() -> list[str]:
 #: The trade rows are measured warm: the truth render compiles the fused pair sum first, and a row's frame time is
 #: the median of its frames (a hybrid row's split-kernel compile falls in its first frame).
 WARM = frozenset({"plain", "split"})
+#: Every variant compiled (a verification run's rows after its first splat gather).
+WARM_ALL = frozenset({"plain", "split", "truncated"})
 
 
 def _truth(row: dict) -> bool:
@@ -162,14 +232,15 @@ def _truth(row: dict) -> bool:
     return bool(row.get("truth")) or row.get("kind") == "truth"
 
 
-def _pred(row, facts, scene, model) -> dict:
+def _pred(row, facts, scene, model, warm: frozenset[str] = WARM) -> dict:
     out = predict(row["method"], row["knobs"], facts, scene.material, decimate=row["decimate"], model=model,
-                  warm=WARM)
+                  warm=warm)
     # the trades time the setup without the first frame's material precompute (Lensch's ``first_s``)
     return {**out, "setup_s": out["setup_s"] - out.get("first_s", 0.0)}
 
 
-def fit(rows, keys: list[str], target: str, asymmetric: bool, base: dict | None = None) -> dict:
+def fit(rows, keys: list[str], target: str, asymmetric: bool, base: dict | None = None,
+        warm: frozenset[str] = WARM) -> dict:
     base = {**MODEL, **(base or {})}  # the constants held fixed (earlier fits of this run)
     x0 = np.array([math.log(max(base[k], 1e-12)) if k not in EXPONENTS else base[k] for k in keys])
 
@@ -187,7 +258,9 @@ def fit(rows, keys: list[str], target: str, asymmetric: bool, base: dict | None 
                 continue
             if target == "rel_rmse" and measured <= 0:
                 continue
-            predicted = _pred(row, facts, scene, m)[{"rel_rmse": "error"}.get(target, target)]
+            p = _pred(row, facts, scene, m, warm)
+            predicted = p["setup_s"] + p["frame_s"] if target == "time_s" else p[{"rel_rmse": "error"}.get(target,
+                                                                                                         target)]
             if target == "rel_rmse":  # below 0.3% every tolerance (1% and up) is met: the value does not matter
                 predicted, measured = max(predicted, ERROR_FLOOR), max(measured, ERROR_FLOOR)
             if predicted <= 0 or measured <= 0:
@@ -204,6 +277,16 @@ def fit(rows, keys: list[str], target: str, asymmetric: bool, base: dict | None 
 
 
 def main() -> None:
+    if "--times-from" in sys.argv:
+        i = sys.argv.index("--times-from") + 1
+        paths = []
+        while i < len(sys.argv) and not sys.argv[i].startswith("--"):
+            paths.append(Path(sys.argv[i]))
+            i += 1
+        result = times_from(paths)
+        (HERE / "results" / "planner_time_fit.json").write_text(json.dumps({"rows": [str(p) for p in paths],
+                                                                             **result}, indent=1))
+        return
     rows = load_rows()
     scenes = sorted({scene.name for scene, _, _ in rows})
     print(f"{len(rows)} rows from {len(scenes)} scenes: {scenes}")

@@ -168,3 +168,45 @@ def test_hybrid_surface_local_weights_through_tables_match_the_formula(monkeypat
             assert bool((_floor_error(fast, exact) < 1e-4).all()) and not torch.equal(fast, exact)  # a table served
         else:
             torch.testing.assert_close(fast, exact, rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("method", ["window", "tile"])
+def test_splat_eager_paths_through_tables_match_the_formula(monkeypatch, method):
+    """Splatting's eager per-pair paths (window, tile) evaluate the profile through a table outside autograd
+    (float32, enough pairs): the image within 1e-4 of the formula's (evaluated under autograd, where no table
+    serves), and a table did serve; float64 stays exact. A plane of 24 x 24 receivers, 150 sources, ketchup."""
+    import torchsss.ops.splat as splat_mod
+    from torchsss.ops import splat_radiosity
+
+    served = []
+
+    def spy(*args, **kwargs):
+        out = bulk_profile(*args, **kwargs)
+        served.append(out is not args[0])
+        return out
+
+    monkeypatch.setattr(splat_mod, "bulk_profile", spy)
+    monkeypatch.setattr(splat_mod, "BULK_MIN_VALUES", 10_000)  # a table for this test's 86k pairs
+    g = torch.Generator().manual_seed(4)
+    ys, xs = torch.meshgrid(torch.linspace(-12, 12, 24, dtype=F64), torch.linspace(-12, 12, 24, dtype=F64),
+                            indexing="ij")
+    dst = torch.stack([xs, -ys, torch.zeros_like(xs)])[None]
+    mask = torch.ones(1, 1, 24, 24, dtype=torch.bool)
+    src = torch.cat([torch.rand(1, 150, 2, generator=g, dtype=F64) * 24 - 12, torch.zeros(1, 150, 1, dtype=F64)], -1)
+    flux = torch.rand(1, 150, 3, generator=g, dtype=F64)
+    vp = torch.diag(torch.tensor([1 / 12.5, 1 / 12.5, 1.0, 1.0], dtype=F64))
+    for dtype in (F32, F64):
+        mat = DipoleMaterial(*Material.from_json("ketchup").tensors(dtype)).requires_grad_(False)
+        args = (src.to(dtype), flux.to(dtype), dst.to(dtype), mask, vp.to(dtype), mat, 20.0)
+        served.clear()
+        with torch.no_grad():
+            fast = splat_radiosity(*args, method=method)
+        assert served == [dtype == F32]  # float64: bulk_profile keeps the formula
+        with torch.enable_grad():
+            exact = splat_radiosity(*args, method=method).detach()
+        assert float(exact.amin()) > 0  # every receiver within reach of some source
+        err = ((fast.double() - exact.double()).abs() / exact.double().abs()).amax()
+        if dtype == F32:
+            assert float(err) < 1e-4 and not torch.equal(fast, exact), float(err)
+        else:
+            torch.testing.assert_close(fast, exact, rtol=1e-14, atol=0)

@@ -70,6 +70,22 @@ def test_facts_closed_form_sphere():
     assert not SceneFacts.from_scene(_scene(mesh="torus")).convex
 
 
+@pytest.mark.parametrize("mesh, light", [("sphere", (0.0, 0.0, 1.0)), ("slab", (0.0, 0.0, 1.0)),
+                                         ("slab", (1.0, 0.0, 0.2)), ("torus", (0.0, 0.5, 1.0)),
+                                         ("torus", (1.0, 0.0, 0.0))])
+def test_light_fill_predicts_splats_light_view_samples(mesh, light):
+    """SceneFacts.light_fill x grid^2 (the planner's splat count) against the splats the renderer makes at its own
+    grid: within 12%, on a sphere (pi / 4 of the texels in closed form, a few more where grazing light at the rim
+    cuts them), a slab lit face-on and edge-on (its fill differs 3x) and a torus lit from above and from the side."""
+    s = _scene(mesh=mesh, size=20.0, material="marble", res=16, light=light)
+    f = SceneFacts.from_scene(s, throughput=False, spread=False)
+    if mesh == "sphere":
+        assert math.pi / 4 <= f.light_fill <= 1.1 * math.pi / 4
+    out = build("splat", s.load_mesh(), "marble", eps=0.01, oversample=2.0).render(s.lights, s.camera)
+    grid, splats = out.stats["grid"], out.stats["splats"]
+    assert grid > 40 and f.light_fill * grid * grid == pytest.approx(splats, rel=0.12), (f.light_fill, grid, splats)
+
+
 def test_source_count_matches_sampler():
     from torchsss.geometry.sampling import surface_samples
     m = sphere(10.0, 3)
@@ -201,7 +217,9 @@ def test_margins_come_from_cross_validation():
         assert margin >= MARGIN
         held = cv[method]["margin"]
         assert held is not None, method
-        if method in ("icdf", "hybrid"):  # the Monte Carlo estimators: above the 5% rule, at most the no-miss margin
+        # the Monte Carlo estimators, and splat (the planner picks its cheapest false accepts: plan.MARGINS): above
+        # the 5% rule, at most the no-miss margin
+        if method in ("icdf", "hybrid", "splat"):
             assert max(MARGIN, held) <= margin <= cv[method]["margin_no_false_accept"], (method, margin, cv[method])
         else:
             assert margin == max(MARGIN, held), (method, margin, held)
@@ -483,13 +501,13 @@ def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
 def test_rule_splat_budget_tighter_for_lower_tolerance():
     # a back-lit 40 mm skin1 spot: the profile's tail beyond r_max lies on the object, the budget matters
     s = _scene(mesh="spot", size=40.0, res=32, light=(-0.5, 0.4, -1.0))
-    loose, tight = plan(s, 0.3, methods=["splat"]), plan(s, 0.05, methods=["splat"])
+    loose, tight = plan(s, 0.3, methods=["splat"]), plan(s, 0.07, methods=["splat"])
     assert loose.method == tight.method == "splat"
     mesh = s.load_mesh()
     grid = {id(p): splat_grid(mesh, s.material, p.knobs["eps"], oversample=p.knobs["oversample"])
             for p in (loose, tight)}
     assert grid[id(tight)] >= grid[id(loose)] >= MIN_GRID and loose.predicted_frame_s <= tight.predicted_frame_s
-    assert tight.predicted_error * MARGINS["splat"] <= 0.05 < loose.predicted_error * MARGINS["splat"]
+    assert tight.predicted_error * MARGINS["splat"] <= 0.07 < loose.predicted_error * MARGINS["splat"]
     assert "splat_budget" in tight.reasons
 
 
@@ -573,8 +591,11 @@ def test_compiled_kernels_are_charged_once_per_process(monkeypatch):
     assert cold["compile_s"] > 0 and warm["compile_s"] == 0
     assert cold["setup_s"] - warm["setup_s"] == pytest.approx(cold["compile_s"])
     assert warm["frame_s"] == pytest.approx(cold["frame_s"])
-    # the hybrid needs the split variant: a warm plain kernel does not spare its compile
-    assert predict("hybrid", {"samples": 65536}, f, s.material, warm=frozenset({"plain"}))["compile_s"] > 0
+    # the hybrid needs the split variant: a warm plain kernel does not spare its compile, but inductor is up (a
+    # further variant's compile is charged, not the first's)
+    hyb = predict("hybrid", {"samples": 65536}, f, s.material, warm=frozenset({"plain"}))["compile_s"]
+    assert hyb == MODEL["fused_variant_s"] < MODEL["fused_compile_s"]
+    assert predict("hybrid", {"samples": 65536}, f, s.material)["compile_s"] == MODEL["fused_compile_s"]
     # compilation switched off: the eager rate, no compile
     monkeypatch.setenv("TORCHSSS_COMPILE", "0")
     off = predict("reference", {}, f, s.material)
@@ -588,6 +609,29 @@ def test_compiled_kernels_are_charged_once_per_process(monkeypatch):
     p1 = plan(s, 0.001, methods=["reference"])
     assert "already compiled" in p1.reasons["compile"]
     assert p0.predicted_setup_s - p1.predicted_setup_s == pytest.approx(MODEL["fused_compile_s"])
+
+
+def test_compiled_pairs_are_costed_in_whole_blocks(monkeypatch):
+    """The compiled pair sum pads receivers and sources to whole blocks (fused.block_shape): a warm reference frame
+    of 363 sources costs as many pairs as one of 2,048, and one of 2,049 twice that; splat's compiled gather the
+    same over its light view's sources (the light view's fill x grid^2)."""
+    monkeypatch.setenv("TORCHSSS_COMPILE", "on")
+    s = _scene(res=64)
+    f = SceneFacts.from_scene(s, throughput=False, spread=False)
+    rb, sb = fused.block_shape("cpu")
+    warm = frozenset({"plain", "truncated"})
+
+    def pair_s(n):
+        p = predict("reference", {}, f, s.material, sources=n, warm=warm)
+        return p["frame_s"] - MODEL["ref_t_src"] * n - MODEL["ref_t_px"] * f.pixels
+
+    blocks = math.ceil(f.covered_px / rb)
+    assert pair_s(363) == pytest.approx(MODEL["fused_t_pair"] * blocks * rb * sb)
+    assert pair_s(2048) == pytest.approx(pair_s(363)) and pair_s(2049) == pytest.approx(2 * pair_s(2048))
+    small = dataclasses.replace(f, light_fill=100 / 32 ** 2)  # 100 splats at grid 32 (oversample 1, eps 0.03)
+    sp = predict("splat", {"eps": 0.03, "oversample": 1.0}, small, s.material, warm=warm)
+    texels = MODEL["splat_t_texel"] * 32 * 32 + MODEL["splat_f0"]
+    assert sp["frame_s"] - texels == pytest.approx(MODEL["splat_t_gather"] * blocks * rb * sb)
 
 
 def test_lensch_is_not_costed_below_its_floor():

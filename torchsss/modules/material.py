@@ -25,7 +25,7 @@ mapped through ``softplus`` (or a sigmoid for Burley's albedo) so that optimisat
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -36,7 +36,14 @@ from torchsss.physics.budget import r_max as _r_max
 from torchsss.physics.budget import splat_spacing
 from torchsss.physics.burley import burley_cumulative, burley_params_from_dipole, burley_r_max, burley_rd
 from torchsss.physics.dipole import dipole_cumulative, dipole_rd, total_diffuse_reflectance
-from torchsss.physics.lut import ProfileTable, build_profile_table, fitted_profile_table, lookup_profile_table
+from torchsss.physics.lut import (
+    BULK_MIN_VALUES,
+    BULK_TOLERANCE,
+    ProfileTable,
+    build_profile_table,
+    bulk_profile,
+    lookup_profile_table,
+)
 from torchsss.physics.materials import PROFILES, Material, preset
 
 __all__ = ["BULK_MIN_VALUES", "BULK_TOLERANCE", "POSITIVE_FLOOR", "BurleyMaterial", "DipoleMaterial",
@@ -529,59 +536,6 @@ class TabulatedMaterial(nn.Module):
     def total_diffuse_reflectance(self) -> Tensor:
         """Closed-form albedo of the wrapped material."""
         return self.material.total_diffuse_reflectance()
-
-
-#: Largest relative error of the tables :func:`bulk_profile` evaluates a profile with (below the profile's millionth
-#: part: against that level), about 100x below the smallest error any method of this library is planned for.
-BULK_TOLERANCE = 2e-5
-#: The fewest distances worth a table: fitting one evaluates the profile at 20k-330k nodes and midpoints (5-30 ms),
-#: more than evaluating fewer distances directly.
-BULK_MIN_VALUES = 1 << 18
-
-
-def bulk_profile(material: nn.Module, r_max_mm: float, dtype: torch.dtype = torch.float32,
-                 device: torch.device | str | None = None) -> Callable[[Tensor], Tensor]:
-    """``material`` for evaluating millions of distances in :math:`[0, r_{max}]` mm at once, without autograd.
-
-    A precompute that evaluates a fixed profile at every kernel tap or throughput entry (the Lensch modules' first
-    frame after a material change: 20-40M distances) spends most of its time in the profile's formula. Where the
-    evaluation is in float32 (or a reduced format), this returns a lookup of a table of the profile over
-    :math:`[0, r_{max}]` (:func:`~torchsss.physics.fitted_profile_table`: 4,096-65,536 nodes, each size checked at
-    every node midpoint against the profile itself in float64, within :data:`BULK_TOLERANCE`), 2-6x faster than the
-    dipole's formula. It returns ``material`` itself for float64 (exact evaluation asked for), for a range that is
-    not finite and positive, under autograd or tracing (the table would hold no gradient), or when no table meets
-    the tolerance.
-
-    Args:
-        material: a profile module (:func:`check_profile`'s contract).
-        r_max_mm: the largest distance that will be evaluated (mm); larger ones would look up 0.
-        dtype: the distances' dtype.
-        device: the distances' device.
-
-    Returns:
-        A callable mapping :math:`(..., 1)` distances (mm) to :math:`(..., C)` profile values (mm^-2).
-
-    Examples:
-        >>> m = DipoleMaterial.from_preset("skin1")
-        >>> r = torch.tensor([[0.3], [4.0]])
-        >>> with torch.no_grad():
-        ...     fast = bulk_profile(m, 5.0)
-        ...     bool(((fast(r) - m(r)).abs() / m(r)).max() < BULK_TOLERANCE)
-        True
-    """
-    if torch.is_grad_enabled() or is_tracing() or dtype not in (torch.float32, torch.float16, torch.bfloat16):
-        return material
-    r_max = float(r_max_mm)
-    if not 0.0 < r_max < math.inf:
-        return material
-    probe = material(torch.zeros(1, 1, dtype=dtype, device=device))
-    if probe.dtype == torch.float64:
-        return material
-    table = fitted_profile_table(material, r_max * (1.0 + 1e-6), tolerance=BULK_TOLERANCE, dtype=dtype,
-                                 device=device)
-    if table is None:
-        return material
-    return lambda r: lookup_profile_table(r, table)
 
 
 _CONTRACT = ("eta", "channels", "r_max", "cumulative", "spacing", "total_diffuse_reflectance")

@@ -49,6 +49,7 @@ from torchsss.physics.fresnel import dipole_boundary_a
 __all__ = [
     "COLD_WORK",
     "WARM_WORK",
+    "block_shape",
     "compile_mode",
     "compile_policy",
     "derived",
@@ -85,6 +86,18 @@ _EAGER_WORK: dict[tuple, float] = {}
 _BROKEN: dict[str, str] = {}
 _EXPECTED: dict[str, float] = {}
 _RAN: set[tuple] = set()  # variants whose compiled form has run (compiled: no ISA setting needed any more)
+
+
+def block_shape(device: str = "cpu") -> tuple[int, int]:
+    """(receivers, sources) of one static block of the compiled :func:`dipole_pair_sum` on a device type.
+
+    A compiled call pads its receivers and sources to whole blocks, so it evaluates whole blocks of pairs.
+
+    Examples:
+        >>> block_shape("cpu")
+        (512, 2048)
+    """
+    return _BLOCKS.get(device, _BLOCKS["cpu"])
 
 
 def compile_mode() -> str:
@@ -477,7 +490,7 @@ def dipole_pair_sum(dst_pos: Tensor, src_pos: Tensor, weight: Tensor, sigma_a: T
         return _blocks(dipole_pair_sum_eager, variant, dst_pos, src_pos, weight, args, extra, m_step, n_step)
     # static blocks: every call has the same shapes (the inputs are padded to whole blocks with zero-weight
     # sources and repeated receivers), so one graph serves every sample and receiver count
-    m_step, n_step = _BLOCKS.get(dst_pos.device.type, _BLOCKS["cpu"])
+    m_step, n_step = block_shape(dst_pos.device.type)
     m_pad, n_pad = -m % m_step, -n % n_step
     if m_pad:
         dst_pos = torch.cat([dst_pos, dst_pos[:, :1].expand(b, m_pad, 3)], 1)

@@ -30,9 +30,9 @@ Three implementations compute the same sum:
 
 * ``"gather"`` (plain dipole profiles): every covered pixel against every splat of its image in the fused,
   compiled pair sum (:func:`torchsss.ops.fused.dipole_pair_sum` with ``r_max``): no candidate lists, all pairs at
-  100-150 Mpairs/s instead of the pairs in reach at about 20. ``"auto"`` picks it (inference, where the pair sum
-  runs compiled) when at least :data:`GATHER_REACH` of the pairs are in reach, as at tight budgets where r_max spans
-  the object.
+  30-70 Mpairs/s (one thread) instead of the pairs in reach at 0.2-10 M/s. ``"auto"`` picks it (inference, where
+  the pair sum runs compiled) when at least :data:`GATHER_REACH` of the pairs are in reach: wherever r_max spans a
+  good part of the object, and down to a hundredth of it.
 
 All are checked against the all-pairs :func:`torchsss.ops.reference.reference_radiosity` with a truncated
 profile; ``benchmarks/bench_splat.py`` measures them.
@@ -60,6 +60,7 @@ from torchsss._checks import (
     skip_value_checks,
 )
 from torchsss.ops.fused import dipole_pair_sum, dipole_params, dipole_taps, use_compiled, would_compile
+from torchsss.physics.lut import BULK_MIN_VALUES, bulk_profile
 
 #: A profile: distances :math:`(..., 1)` or :math:`(..., C)` in mm -> :math:`R_d` :math:`(..., C)` in mm^-2.
 Profile = Callable[[Tensor], Tensor]
@@ -274,6 +275,22 @@ def _profile(r: Tensor, valid: Tensor | None, md: Tensor | None, rmax: Tensor, p
     return torch.where(keep, rd, torch.zeros_like(rd))
 
 
+def _material_row(profile: Profile, r_max: Tensor, pairs: float, dtype: torch.dtype, device: torch.device) -> tuple:
+    """``(profile, r_max (1, 1), evaluation)`` of one material for the eager per-pair paths.
+
+    The evaluation is the profile's table (:func:`~torchsss.physics.lut.bulk_profile`, within its
+    :data:`~torchsss.physics.lut.BULK_TOLERANCE`) when a frame may evaluate at least
+    :data:`~torchsss.physics.lut.BULK_MIN_VALUES` pairs (``pairs``: covered pixels x splats, the most it can) outside
+    autograd; else the profile itself (bulk_profile also keeps it for float64, under autograd and while tracing).
+    A gather and a lerp per pair instead of the dipole's formula: a splat frame whose reach spans the object 1.4-1.5x
+    faster (a back-lit 20 mm potato sphere at 128 x 128, oversample 1 and 2: 0.63 -> 0.42 s and 4.6 -> 3.1 s).
+    """
+    evaluate = profile
+    if pairs >= BULK_MIN_VALUES and not torch.is_grad_enabled():
+        evaluate = bulk_profile(profile, float(r_max), dtype, device)
+    return profile, r_max.reshape(1, 1), evaluate
+
+
 def _sqrt0(x: Tensor) -> Tensor:
     """:math:`\\sqrt{x}` with gradient 0 at :math:`x = 0` (coincident points)."""
     pos = x > 0
@@ -283,12 +300,13 @@ def _sqrt0(x: Tensor) -> Tensor:
 def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict, mat: tuple, step: int) -> Tensor:
     """Add :math:`R_d(r)\\,E\\,dA` of a list of pairs to ``out`` :math:`(C, N)` (``index`` into its columns).
 
-    ``r`` are the pairs' distances (mm), ``splat`` their sources in ``src``; ``mat`` = (profile, r_max (1, 1)) of
-    the one material of ``src`` (the eager paths handle one material at a time, so no per-pair material gather).
-    The pairs are evaluated ``step`` at a time.
+    ``r`` are the pairs' distances (mm), ``splat`` their sources in ``src``; ``mat`` = (profile, r_max (1, 1),
+    evaluation) of the one material of ``src`` (the eager paths handle one material at a time, so no per-pair
+    material gather; the evaluation is the profile or its table, :func:`_material_row`). The pairs are evaluated
+    ``step`` at a time.
     """
     c = out.shape[0]
-    profile, rmax = mat
+    profile, rmax, evaluate = mat
     dipole = dipole_params(profile, r.dtype, r.device, c)  # the plain dipole: the fused kernel may run
     coeffs = None if dipole is None else dipole[1]
     fused = dipole is not None and use_compiled(
@@ -302,7 +320,7 @@ def _accumulate(out: Tensor, index: Tensor, r: Tensor, splat: Tensor, src: dict,
         if fused:
             contrib = dipole_taps(r[sl], flux, rmax.to(r.dtype), *coeffs, md, compiled=True)
         else:
-            contrib = _profile(r[sl].unsqueeze(0), None, md, rmax, profile) * flux  # (C, P)
+            contrib = _profile(r[sl].unsqueeze(0), None, md, rmax, evaluate) * flux  # (C, P)
         out = out.scatter_add(1, index[sl].expand(c, -1), contrib)
     return out
 
@@ -514,7 +532,7 @@ def _tile_block(tiles: _Tiles, idx: Tensor, cand: Tensor, ok: Tensor, src: dict,
     if tiles.obj is not None:
         valid = valid & (tiles.obj[idx].unsqueeze(-1) == src["obj"][cand].unsqueeze(1))
     md = None if src["md"] is None else src["md"][cand].permute(2, 0, 1).unsqueeze(2)  # (1|C, ntc, 1, L)
-    rd = _profile(r.unsqueeze(0), valid.unsqueeze(0), md, mat[1].reshape(1, 1, 1, 1), mat[0])  # (C, ntc, T2, L)
+    rd = _profile(r.unsqueeze(0), valid.unsqueeze(0), md, mat[1].reshape(1, 1, 1, 1), mat[2])  # (C, ntc, T2, L)
     flux = src["flux"][cand].permute(2, 0, 1).unsqueeze(2)  # (C, ntc, 1, L)
     return (rd * flux).sum(-1)
 
@@ -574,9 +592,14 @@ def _splat_tile(out: Tensor, src: dict, mat: tuple, tiles: list[_Tiles], h: int,
 
 # -- gather (fused all pairs) -----------------------------------------------------------------------------------------
 #: The share of (pixel, splat) pairs within reach above which the fused gather of all pairs beats the per-pair
-#: paths (the fused pair sum runs 100-150 Mpairs/s on the 2-core machine, the window and tile paths about 20 over
-#: the pairs in reach: 15-32 s a frame for the default scene at 256 x 256 at eps 0.003, where r_max spans it).
-GATHER_REACH = 0.2
+#: paths. Measured 2026-11-29 (1 thread, the compiled pair sum warm): the gather runs 30-70 Mpairs/s over all pairs
+#: (5-20 where a frame has under 3M, its blocks of 2,048 splats mostly padding); the window path 0.2-5 M/s over the
+#: pairs in reach in a frame's first evaluation (eager, through the profile's table) and the tile path about 9. On a
+#: back-lit 60 mm whole-milk sphere at 128 x 128, where 1% of the pairs are in reach (eps 0.03, 7,835 splats), the
+#: gather took 0.55 s a frame, the window path 2.55 s on the first frame and 0.65 s on the next (its taps compiled);
+#: at 7% (eps 0.01, 11,873 and 46,672 splats) 0.86 s against 4.58 / 0.95 s and 3.29 s against 17.4 / 3.35 s. It had
+#: been 0.2 (from rates of 100-150 against 20 Mpairs/s).
+GATHER_REACH = 0.01
 
 
 def _reach_share(src: dict, dst: Tensor, mask_flat: Tensor, probe: int = 256) -> float:
@@ -684,8 +707,11 @@ def splat_radiosity(
     In eager mode, splats that cannot reach a pixel (off-screen or behind the camera for the window path; sources
     with zero flux unless ``src_flux``/``src_irradiance_scale`` require gradients) are dropped first, materials are
     processed one after the other, and the work is chunked over splats (window) or tiles (tile) so that the
-    temporaries stay below about ``max_memory_mb``. While tracing/exporting, the window path is one dense chunk
-    (:math:`S K^2` taps) with per-splat material rows, and the data-dependent checks are skipped.
+    temporaries stay below about ``max_memory_mb``. Outside autograd, in float32, a frame of at least
+    :data:`~torchsss.physics.lut.BULK_MIN_VALUES` (pixel, splat) pairs evaluates the profile of those two paths
+    through a table of it (:func:`~torchsss.physics.lut.bulk_profile`, within
+    :data:`~torchsss.physics.lut.BULK_TOLERANCE` of the formula). While tracing/exporting, the window path is one
+    dense chunk (:math:`S K^2` taps) with per-splat material rows, and the data-dependent checks are skipped.
 
     Differentiable with respect to ``src_flux``, the parameters the profiles close over (a material module's
     :math:`\\sigma_a`, :math:`\\sigma_s'`, ...) and the modifiers (the truncation is a step: ``r_max`` gets no
@@ -898,7 +924,7 @@ def splat_radiosity(
         tiles = [_Tiles(grid[i], dst_mask[i, 0], None if obj is None else obj[i], tile_size) for i in range(b)]
     for k in torch.unique(mat).tolist() if m > 1 else ([0] if mat.numel() else []):
         sub = src if m == 1 else _take(src, torch.nonzero(mat == k).squeeze(-1))
-        row = (profiles[k], rm[k].reshape(1, 1))
+        row = _material_row(profiles[k], rm[k], pairs, dtype, dst_pos.device)
         if gather:
             out = _splat_gather(out, sub, dipoles[k][1], rm[k], dst_points, mask_flat, dst_obj, b, h * w)
         elif method == "window":
