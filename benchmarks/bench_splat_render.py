@@ -80,7 +80,7 @@ from torchsss.physics import splat_spacing
 from torchsss.physics.dipole import dipole_terms
 from torchsss.physics.materials import preset_names
 from torchsss.pipelines.reference import default_spacing, render_reference
-from torchsss.pipelines.splat import _light_sources, render_splat, splat_grid
+from torchsss.pipelines.splat import light_sources, render_splat, splat_grid
 from torchsss.scene import Material, default_scene_path, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -198,7 +198,7 @@ def reach_pairs(setup: SceneSetup, material: Material, grid: int, radius: float,
     """(splats, pairs within ``radius``) of ``render_splat``'s light views at ``grid`` (same selection)."""
     splats = pairs = 0
     for light in setup.lights:
-        src = _light_sources(setup.mesh, light, grid, material.eta, 0)[0]  # the renderer's own sources
+        src = light_sources(setup.mesh, light, grid, material.eta, 0)[0]  # the renderer's own sources
         splats += int(src.shape[0])
         step = max(1, CHUNK_PAIRS // max(1, pixels.shape[0]))
         for i in range(0, src.shape[0], step):

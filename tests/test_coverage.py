@@ -13,7 +13,7 @@ from torchsss.geometry.gbuffer import layer_gbuffer, light_view
 from torchsss.geometry.lights import DirectionalLight
 from torchsss.geometry.objects import merge_meshes
 from torchsss.geometry.procedural import plane, slab, sphere
-from torchsss.pipelines.splat import _light_sources
+from torchsss.pipelines.splat import light_sources
 
 F64 = torch.float64
 
@@ -110,7 +110,7 @@ def test_splat_sources_carry_a_thin_rims_exact_flux(grid, misaligned):
     exact = 2.0 * 25.0 * 1.25
     totals = {}
     for coverage in (False, True):
-        _, flux, _, _ = _light_sources(mesh, light, grid, 1.0, 8, 4.0, coverage)
+        _, flux, _, _ = light_sources(mesh, light, grid, 1.0, 8, 4.0, coverage)
         totals[coverage] = float(flux[:, 0].sum())
     assert abs(totals[True] - exact) <= 1e-9 * exact
     lv = light_view(mesh, light, grid, 1.0)
@@ -129,7 +129,7 @@ def test_splat_coverage_knob():
         build("splat", mesh, "cream", coverage=1)
     light = DirectionalLight((-1.0, 0.0, 0.0), (2.0, 2.0, 2.0))
     lv = light_view(mesh, light, 128, 1.3)
-    _, flux, _, _ = _light_sources(mesh, light, 128, 1.3, 8, None, False)
+    _, flux, _, _ = light_sources(mesh, light, 128, 1.3, 8, None, False)
     assert torch.allclose(flux.sum(0), lv.flux[0].sum((1, 2)), rtol=1e-6)
     cam = Camera(eye=(30.0, 10.0, 40.0), target=(0.0, 0.0, 0.0), width=24, height=24)
     on = build("splat", mesh, "cream", grid=128).render([light], cam)

@@ -15,7 +15,7 @@ from torchsss.geometry.grazing import split_grazing
 from torchsss.geometry.lights import DirectionalLight
 from torchsss.geometry.procedural import sphere
 from torchsss.pipelines import build
-from torchsss.pipelines.splat import _light_sources
+from torchsss.pipelines.splat import light_sources
 from torchsss.scene import Scene
 
 D = torch.float64
@@ -95,7 +95,7 @@ def test_pieces_follow_a_curved_surface():
     m = sphere(10.0, 4, dtype=D)
     light = DirectionalLight((-1.0, 0.0, 0.0), 1.0)
     lv = light_view(m, light, 48, 1.3)
-    p, f, _, _ = _light_sources(m, light, 48, 1.3, 8, 4.0, flux="facet")  # the light view's own flux, split
+    p, f, _, _ = light_sources(m, light, 48, 1.3, 8, 4.0, flux="facet")  # the light view's own flux, split
     assert p.shape[0] > int(lv.mask.sum())
     torch.testing.assert_close(f.sum(0), lv.flux.sum((0, 2, 3)), rtol=1e-10, atol=0)
     tm = trimesh.Trimesh(m.vertices.numpy(), m.faces.numpy(), process=False)

@@ -94,7 +94,7 @@ from torchsss.physics.dipole import total_diffuse_reflectance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.atlas_view import source_mesh
 from torchsss.pipelines.chang import LOCAL_STRIDES, HybridRenderer, profile_rp
-from torchsss.pipelines.splat import MIN_GRID, _light_sources, grid_for
+from torchsss.pipelines.splat import MIN_GRID, grid_for, light_sources
 from torchsss.scene import Scene
 from torchsss.trade import ATLAS_METHODS, applicable_methods
 
@@ -639,7 +639,7 @@ def hybrid_local_plan(facts: SceneFacts, model: dict | None = None) -> tuple[int
 
 def _light_fill(scene: Scene, mesh: Mesh, eta: float) -> float:
     """:attr:`SceneFacts.light_fill`: splat's sources of each light at a :data:`FILL_GRID` light view, per texel."""
-    fills = [_light_sources(mesh, light, FILL_GRID, eta, 0, coverage=False, flux="facet")[0].shape[0]
+    fills = [light_sources(mesh, light, FILL_GRID, eta, 0, coverage=False, flux="facet")[0].shape[0]
              / FILL_GRID ** 2 for light in scene.lights if isinstance(light, (PointLight, SpotLight, DirectionalLight))]
     return sum(fills) / len(fills) if fills else 0.5
 

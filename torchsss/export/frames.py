@@ -140,11 +140,11 @@ def frame_inputs(renderer, lights, camera) -> tuple[nn.Module, dict[str, Tensor]
     meta = {"method": method, "width": camera.width, "height": camera.height}
     with torch.no_grad():
         if method == "splat":
-            from torchsss.pipelines.splat import _light_sources
+            from torchsss.pipelines.splat import light_sources
 
             if any(m is not None for m in (renderer.md, renderer.mi)):
                 raise ValueError("distance_scale/irradiance_scale: expected none for --save-gbuffers, got modifiers")
-            srcs = [_light_sources(mesh, light, renderer.knobs["grid"], eta, renderer.knobs["peel_layers"],
+            srcs = [light_sources(mesh, light, renderer.knobs["grid"], eta, renderer.knobs["peel_layers"],
                                    renderer.knobs["max_stretch"], renderer.knobs["coverage"]) for light in lights]
             pos = torch.cat([s[0] for s in srcs]).unsqueeze(0)
             flux = torch.cat([s[1] for s in srcs]).unsqueeze(0)

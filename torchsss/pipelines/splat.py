@@ -66,7 +66,7 @@ from torchsss.pipelines.modifiers import at_sources, vertex_modifiers
 from torchsss.pipelines.renderer import Renderer, RenderResult, check_lights, check_objects
 from torchsss.pipelines.specular import shadow_mapped_specular
 
-__all__ = ["SplatRenderer", "grid_for", "render_splat", "render_splat_objects", "splat_grid"]
+__all__ = ["SplatRenderer", "grid_for", "light_sources", "render_splat", "render_splat_objects", "splat_grid"]
 
 
 @functools.lru_cache(maxsize=256)
@@ -149,7 +149,7 @@ def grid_for(diameter_mm: float, spacing_mm: float, oversample: float = 2.0, max
     return int(min(max_grid, max(2, math.ceil(oversample * max(diameter_mm / spacing_mm, float(min_grid))))))
 
 
-def _light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int,
+def light_sources(mesh: Mesh, light: Light, n: int, eta: float, peel_layers: int,
                    max_stretch: float | None = MAX_STRETCH, coverage: bool = True,
                    flux: str = "shading") -> tuple[Tensor, ...]:
     """Splat sources of one light: position (S, 3), flux (S, 3), face id (S,), barycentrics (S, 3).
@@ -270,7 +270,7 @@ class SplatRenderer(Renderer):
         splats = 0
         sources, reused = self._per_lights(  # the splats depend on the lights and eta alone: kept while they stay
             "light_sources", lights,
-            lambda: [_light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"], k["coverage"],
+            lambda: [light_sources(mesh, light, n, eta, k["peel_layers"], k["max_stretch"], k["coverage"],
                                          k["flux"])
                      for light in lights],
             (n, k["peel_layers"], k["max_stretch"], k["coverage"]))
@@ -384,7 +384,7 @@ def render_splat_objects(objects: Sequence[tuple[Mesh, Material | nn.Module]], l
     obj_eta = torch.tensor([float(mat.eta.detach()) for mat in materials], dtype=dtype, device=device)
     pos, flux, obj = [], [], []
     for light in lights:
-        views = [_light_sources(merged, light, n, e, peel_layers) for e in etas]  # the same points, per eta
+        views = [light_sources(merged, light, n, e, peel_layers) for e in etas]  # the same points, per eta
         p0, _, fid, _ = views[0]
         ids = face_object[fid]
         f = torch.zeros(ids.shape[0], 3, dtype=dtype, device=device)

@@ -31,7 +31,7 @@ from torchsss.modules.splat import SplatTranslucency
 from torchsss.physics.fresnel import exit_radiance
 from torchsss.physics.materials import Material
 from torchsss.pipelines.renderer import RenderResult
-from torchsss.pipelines.splat import MAX_STRETCH, _light_sources, splat_grid
+from torchsss.pipelines.splat import MAX_STRETCH, light_sources, splat_grid
 
 __all__ = ["render_splat_sequence"]
 
@@ -144,7 +144,7 @@ def _frames(meshes: Iterable[Mesh], material: Material, lights: list[Light], cam
                 reused, new = reused + st["reused"], new + st["new"]
             else:
                 # Shah's flux, as the coherent samples carry it (their light-view pixel's footprint)
-                pos, flux, _, _ = _light_sources(mesh, light, n, profile.eta, 0, max_stretch, flux="facet")
+                pos, flux, _, _ = light_sources(mesh, light, n, profile.eta, 0, max_stretch, flux="facet")
                 src_pos, src_flux = pos.unsqueeze(0), flux.unsqueeze(0)
             splats += int(src_pos.shape[1])
             total = total + src_flux[0].sum(0)
