@@ -12,7 +12,10 @@ For each scene (procedural shapes and the shared meshes, 5-80 mm, ketchup to ski
 
 A (scene, tolerance) pair is a hit when the planned render's relative RMSE is within the tolerance; the time ratio
 is the planned render's setup + frame over that of the fastest configuration (sweep rows and planned renders) that
-meets the tolerance; the truth itself always meets it, so the ratio is defined. Writes
+meets the tolerance; the truth itself always meets it, so the ratio is defined. Since each configuration is timed
+once, the fastest of some twenty single timings is biased low by the machine's spread: with ``--repeat N`` (default 3)
+each plan and the fastest configuration meeting its tolerance are then re-timed in turns, N renders each, and
+``time_ratio_repeat`` is the planned render's median (plus its planning) over the fastest's. Writes
 ``results/planner.{json,md}``. 1 thread (on the shared 2-core machine, two OpenMP processes slow each other 5-10x).
 
 Usage::
@@ -28,6 +31,8 @@ Usage::
 from __future__ import annotations
 
 import json
+import math
+import statistics
 import time
 from pathlib import Path
 
@@ -160,6 +165,28 @@ def sweep(faces: int) -> list[tuple[str, dict]]:
             else (m, k) for m, k in runs]
 
 
+def _config_key(row: dict) -> str:
+    return json.dumps([row["method"], row["knobs"]], sort_keys=True)
+
+
+def _retime(scene: Scene, configs: list[dict], repeat: int) -> dict[str, float]:
+    """Median setup + frame of each distinct configuration over ``repeat`` renders, taken in turns.
+
+    The sweep times each configuration once, and the fastest of some twenty single timings is biased low by the
+    machine's spread (the same configuration measured 0.13 s and 0.33 s in two runs of one day): each plan and the
+    fastest configuration meeting its tolerance are re-timed side by side (``time_ratio_repeat``).
+    """
+    if repeat <= 0:
+        return {}
+    distinct = {_config_key(c): c for c in configs}
+    times: dict[str, list[float]] = {k: [] for k in distinct}
+    for _ in range(repeat):
+        for key, c in distinct.items():
+            out, _ = run_config(scene, c["method"], c["knobs"], 1, torch.float32)
+            times[key].append(out.stats["setup_s"] + out.stats["frame_median_s"])
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
 def main() -> None:
     parser = benchmark_parser(__doc__.splitlines()[0], "planner", RESULTS_DIR)
     parser.add_argument("--only", nargs="+", default=None, help="run the scenes whose names contain one of these")
@@ -170,6 +197,9 @@ def main() -> None:
                              "calibrated on; FOURTH the newest)")
     parser.add_argument("--no-sweep", action="store_true",
                         help="skip the trade sweep: hit rate only (time ratio against the truth and the plans)")
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="re-time each plan and the fastest configuration meeting its tolerance this many times, "
+                             "alternately (median; 0: the single timings only)")
     args = parser.parse_args()
     setup_benchmark(parser, args)
     start = time.perf_counter()
@@ -205,9 +235,11 @@ def main() -> None:
                    "predicted_error": p.predicted_error, "predicted_s": p.predicted_total_s}
             rows.append(row)
             planned[tol] = row
+        fastest_of = {tol: min((r for r in rows if r["rel_rmse"] <= tol), key=lambda r: r["time_s"])
+                      for tol in planned}
+        retimed = _retime(scene, [c for tol, row in planned.items() for c in (row, fastest_of[tol])], args.repeat)
         for tol, row in planned.items():
-            meeting = [r for r in rows if r["rel_rmse"] <= tol]
-            fastest = min(meeting, key=lambda r: r["time_s"])
+            fastest = fastest_of[tol]
             records.append({"benchmark": "verification", "scene": scene.name, "resolution": scene.camera.width,
                             "faces": faces, "tolerance": tol, "method": row["method"],
                             "knobs": json.dumps(row["knobs"]),
@@ -217,6 +249,10 @@ def main() -> None:
                             f"{json.dumps(fastest['knobs'])}", "fastest_s": fastest["time_s"],
                             "time_ratio": (row["time_s"] + row["plan_s"]) / fastest["time_s"],
                             "reference_s": truth_s})
+            if retimed:
+                mine, best = retimed[_config_key(row)], retimed[_config_key(fastest)]
+                records[-1].update({"time_s_repeat": mine + row["plan_s"], "fastest_s_repeat": best,
+                                    "time_ratio_repeat": (mine + row["plan_s"]) / best})
             print(f"{scene.name} tol {tol:.0%}: {row['method']} {row['knobs']} error {row['rel_rmse']:.2%} "
                   f"(predicted {row['predicted_error']:.2%}), {records[-1]['time_s']:.2f} s, "
                   f"ratio {records[-1]['time_ratio']:.2f} vs {records[-1]['fastest_meeting']}", flush=True)
@@ -226,8 +262,9 @@ def main() -> None:
     records.sort(key=lambda r: (order.index(r["scene"]) if r["scene"] in order else 99, r["tolerance"]))
     hits = sum(r["hit"] for r in records)
     ratio_ok = sum(r["time_ratio"] <= 1.5 for r in records)
+    repeat_ok = sum(r.get("time_ratio_repeat", math.inf) <= 1.5 for r in records)
     summary = [{"benchmark": "summary", "pairs": len(records), "hits": hits, "hit_rate": hits / max(1, len(records)),
-                "time_ratio_le_1.5": ratio_ok,
+                "time_ratio_le_1.5": ratio_ok, "time_ratio_repeat_le_1.5": repeat_ok,
                 "worst_ratio": max((r["time_ratio"] for r in records), default=float("nan")),
                 "worst_error_over_tolerance": max((r["rel_rmse"] / r["tolerance"] for r in records),
                                                   default=float("nan"))}]
@@ -236,9 +273,10 @@ def main() -> None:
     finish_benchmark(args.name, records + summary, args.out_dir, start=start,
                      columns={"verification": ["scene", "resolution", "faces", "tolerance", "method", "knobs",
                                                "rel_rmse", "predicted_error", "hit", "time_s", "predicted_s",
-                                               "fastest_meeting", "fastest_s", "time_ratio", "reference_s"],
-                              "summary": ["pairs", "hits", "hit_rate", "time_ratio_le_1.5", "worst_ratio",
-                                          "worst_error_over_tolerance"]})
+                                               "fastest_meeting", "fastest_s", "time_ratio", "time_s_repeat",
+                                               "fastest_s_repeat", "time_ratio_repeat", "reference_s"],
+                              "summary": ["pairs", "hits", "hit_rate", "time_ratio_le_1.5", "time_ratio_repeat_le_1.5",
+                                          "worst_ratio", "worst_error_over_tolerance"]})
 
 
 if __name__ == "__main__":

@@ -103,6 +103,35 @@ def test_splat_count_formula():
     assert splat_count(torch.tensor([10.0, 20.0]), 1.0, 2.0).tolist() == [10, 20]
 
 
+def test_alias_solver_matches_splat_alias_error():
+    # splat_spacing's inner loop (terms and lattice built once, no checks) is splat_alias_error
+    from torchsss.physics.budget import _alias_solver
+
+    sa = torch.tensor([0.0021, 0.0041, 0.0071], dtype=torch.float64)
+    ss = torch.tensor([2.19, 2.62, 3.0], dtype=torch.float64)
+    et = torch.full((3,), 1.3, dtype=torch.float64)
+    h = torch.logspace(-3, 1, 40, dtype=torch.float64)[:, None].expand(40, 3)
+    torch.testing.assert_close(_alias_solver(sa, ss, et)(h), splat_alias_error(h, sa, ss, et), rtol=1e-11,
+                               atol=1e-300)
+
+
+def test_bisection_stops_at_its_relative_width():
+    from torchsss.physics.budget import _bisect_increasing
+
+    calls = []
+
+    def f(x):
+        calls.append(1)
+        return x
+
+    lo, hi = torch.tensor([1.0], dtype=torch.float64), torch.tensor([1.01], dtype=torch.float64)
+    root = _bisect_increasing(f, lo, hi, 1.005, rtol=1e-12)
+    assert abs(root.item() - 1.005) < 2e-12 and len(calls) < 40
+    calls.clear()
+    full = _bisect_increasing(f, lo, hi, 1.005)
+    assert len(calls) == 60 and abs(full.item() - root.item()) < 2e-12
+
+
 def test_chang_rp_is_largest_crossing():
     sa, ss, eta = _mat("skimmilk")
     for c_val in (1e-3, 1e-2, 5e-2):

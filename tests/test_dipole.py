@@ -97,6 +97,16 @@ def test_against_independent_scalar_formula():
                                                                                                    rel=1e-13)
 
 
+def test_terms_spectrum_matches_dipole_spectrum():
+    # DipoleTerms.spectrum, the solvers' unchecked form, is dipole_spectrum at every finite k >= 0
+    sa = torch.tensor([0.0021, 0.0041, 0.0], dtype=torch.float64)
+    ss = torch.tensor([2.19, 2.62, 3.0], dtype=torch.float64)
+    k = torch.cat([torch.zeros(1, dtype=torch.float64), torch.logspace(-4, 4, 60, dtype=torch.float64)])[:, None]
+    terms = dipole_terms(sa, ss, torch.tensor(1.3, dtype=torch.float64))
+    want = dipole_spectrum(k, sa, ss, 1.3)
+    torch.testing.assert_close(terms.spectrum(k), want, rtol=1e-12, atol=1e-300)
+
+
 def test_spectrum_is_hankel_transform():
     sa, ss, eta = _material("skin1")
     for k in (0.0, 0.5, 3.0):

@@ -507,3 +507,21 @@ def test_scene_with_several_geometries_is_concatenated(tmp_path):
     m = load_mesh(path)
     assert m.num_faces == 640
     assert m.area == pytest.approx(a.area + b.area, rel=1e-5)
+
+
+def test_surface_deviation_samples_a_large_mesh(monkeypatch):
+    # past 8,192 vertices the quantile is read from a seeded sample of them: within 2% of all of them, the same
+    # on every call
+    import torchsss.geometry.mesh as mesh_module
+    from torchsss.geometry.mesh import surface_deviation
+
+    fine = sphere(10.0, 6)  # 40,962 vertices
+    v = fine.vertices
+    u = v / v.norm(dim=1, keepdim=True)
+    bumps = 1.0 + 0.02 * torch.sin(25 * u[:, 0]) * torch.sin(25 * u[:, 1]) * torch.sin(25 * u[:, 2] + 1.0)
+    fine = Mesh(vertices=v * bumps.unsqueeze(-1), faces=fine.faces, name="bumpy")
+    coarse = decimate(fine, 2000)
+    sampled = surface_deviation(fine, coarse)
+    assert sampled == surface_deviation(fine, coarse) > 0
+    monkeypatch.setattr(mesh_module, "_DEVIATION_SAMPLES", 10 ** 9)
+    assert sampled == pytest.approx(surface_deviation(fine, coarse), rel=0.02)

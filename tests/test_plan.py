@@ -467,6 +467,31 @@ def test_sampling_spread_of_a_sampled_part():
     assert sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=lambda r: 0.0 * m(r)) == 0.0
     with pytest.raises(TypeError, match="sampled: expected a callable"):
         sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=3.0)
+    # a split of the profile itself (SplitProfile, the hybrid's global part) is weighed on the profile's table:
+    # the same as the split evaluated through the formula (any callable)
+    from torchsss.modules.chang import ChangLocalProfile, SplitProfile
+
+    split = SplitProfile(m, ChangLocalProfile(1.0, 1.5, 3.0), "global")
+    formula = sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=lambda r: split(r))
+    tabled = sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=split)
+    assert 0.0 < tabled < whole and tabled == pytest.approx(formula, rel=1e-3)
+    local = SplitProfile(m, ChangLocalProfile(1.0, 1.5, 3.0), "local")
+    assert sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=local) == pytest.approx(
+        sampling_spread(mesh, m, s.lights, s.camera.eye, sampled=lambda r: local(r)), rel=1e-3)
+
+
+def test_source_mesh_ladder_decimates_from_the_coarsest_finer_mesh_made():
+    from torchsss.plan import _source_mesh
+
+    mesh = sphere(10.0, 5)  # 20480 faces
+    direct = _source_mesh(mesh, 4000)
+    assert _source_mesh(mesh, 4000) is direct and 3800 <= direct.num_faces <= 4200  # remembered
+    stand_in = _source_mesh(mesh, 1000, ladder=True)
+    assert 950 <= stand_in.num_faces <= 1050
+    assert _source_mesh(direct, 1000).vertices.shape == stand_in.vertices.shape  # made from the 4,000 faces
+    assert torch.equal(_source_mesh(direct, 1000).vertices, stand_in.vertices)
+    assert _source_mesh(mesh, 1000) is not stand_in  # the renderers' count is decimated from the full mesh
+    assert _source_mesh(mesh, 10 ** 6) is mesh
 
 
 def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
@@ -887,3 +912,18 @@ def test_splat_object_scale_term_falls_with_the_grid():
     assert same["error"] == pytest.approx(free["error"], rel=1e-3)
     charged = predict("splat", {"eps": 0.01, "oversample": 1.0}, fb, ball.material, model={"splat_obj_convex": 1.0})
     assert charged["error"] > same["error"]
+
+
+def test_splat_is_planned_at_oversample_one_and_a_half_between_one_and_two():
+    # every splat eps is offered at the oversamplings of SPLAT_OVERSAMPLE; 1.5 lies between 1 and 2 in both the
+    # predicted error and the predicted frame (2.25x oversample 1's texels, 4x at oversample 2)
+    from torchsss.plan import SPLAT_OVERSAMPLE, candidates
+
+    assert SPLAT_OVERSAMPLE == (1.0, 1.5, 2.0, 4.0)
+    s = _scene(mesh="torus", size=20.0, material="skin1", res=64, light=(1.0, 0.3, 0.2))
+    f = SceneFacts.from_scene(s, throughput=False, spread=False)
+    offered = {(c["knobs"]["eps"], c["knobs"]["oversample"]) for c in candidates(s, f, 0.02, ["splat"])}
+    assert offered == {(e, o) for e in (0.003, 0.01, 0.03) for o in SPLAT_OVERSAMPLE}
+    p = {o: predict("splat", {"eps": 0.01, "oversample": o}, f, s.material) for o in (1.0, 1.5, 2.0)}
+    assert p[1.0]["error"] > p[1.5]["error"] > p[2.0]["error"]
+    assert p[1.0]["frame_s"] < p[1.5]["frame_s"] < p[2.0]["frame_s"]

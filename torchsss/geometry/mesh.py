@@ -749,12 +749,17 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
     )
 
 
+#: The fine mesh's vertices :func:`surface_deviation` measures at most (a seeded sample beyond).
+_DEVIATION_SAMPLES = 8192
+
+
 def surface_deviation(mesh: Mesh, coarse: Mesh, quantile: float = 0.9) -> float:
     """How far (mm) ``coarse`` (e.g. a :func:`decimate` of ``mesh``) strays from ``mesh``'s surface.
 
-    The ``quantile`` of the distances from ``mesh``'s vertices to the plane of the ``coarse`` face whose centroid is
-    nearest (a cheap stand-in for the point-to-surface distance: exact on faces much larger than the offset,
-    an overestimate where the nearest centroid belongs to a neighbouring face). Sources sampled on a coarse
+    The ``quantile`` of the distances from ``mesh``'s vertices (a seeded sample of 8,192 where it has more: within
+    1% of all of them on the shared igea's and bunny's decimations) to the plane of the ``coarse`` face whose centroid
+    is nearest (a cheap stand-in for the point-to-surface distance: exact on faces much larger than the offset, an
+    overestimate where the nearest centroid belongs to a neighbouring face). Sources sampled on a coarse
     surface sit this far off the true one; the dipole between two points changes by about that length over
     :math:`1/\\sigma_{tr}` in relative terms (:func:`torchsss.plan.predict`).
 
@@ -783,6 +788,8 @@ def surface_deviation(mesh: Mesh, coarse: Mesh, quantile: float = 0.9) -> float:
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True) + 1e-300
     v = mesh.vertices.detach().double().cpu().numpy()
+    if len(v) > _DEVIATION_SAMPLES:  # a quantile: a seeded sample of the vertices holds it within about 1%
+        v = v[np.random.default_rng(0).choice(len(v), _DEVIATION_SAMPLES, replace=False)]
     _, idx = cKDTree(centre).query(v, k=1)
     dist = np.abs(((v - centre[idx]) * normal[idx]).sum(1))
     return float(np.quantile(dist, float(quantile)))

@@ -103,6 +103,16 @@ class DipoleTerms:
         """
         return torch.sqrt(self.sigma_tr_sq)
 
+    def spectrum(self, k: Tensor) -> Tensor:
+        """:func:`dipole_spectrum` at finite ``k >= 0`` (rad/mm) without its checks, for solvers' inner loops.
+
+        :math:`\\hat R_d(k) = \\tfrac{\\alpha'}{2}(e^{-z_r q} + e^{-z_v q})`, :math:`q = \\sqrt{k^2 + \\sigma_{tr}^2}`;
+        ``k`` broadcasts with the terms. Not for autograd (the square root's derivative is not guarded at
+        :math:`k = \\sigma_a = 0`).
+        """
+        q = torch.sqrt(k * k + self.sigma_tr_sq)
+        return 0.5 * self.alpha_prime * (torch.exp(-self.z_r * q) + torch.exp(-self.z_v * q))
+
 
 def _prepare_material(
     sigma_a: Tensor | float, sigma_s_prime: Tensor | float, eta: Tensor | float, like: Tensor | None
