@@ -52,7 +52,8 @@ SPREAD = {
     "sphere-5-skimmilk-side": ("sphere", 5.0, "skimmilk", "side", 256, None),
     "torus-15-apple-back": ("torus", 15.0, "apple", "back", 256, None),
     "bunny-5-chicken1-front": (str(MESHES / "stanford-bunny.obj"), 5.0, "chicken1", "front", 256, None),
-    # a thin (1.25 mm) slab lit on its rim: the seen face's light enters beside it, across a crease (added 2026-11-27)
+    # a thin slab (25 mm its diagonal: 17.7 x 17.7 x 0.88 mm) lit on its rim: the seen face's light enters beside
+    # it, across a crease (added 2026-11-27)
     "slab-25-cream-side": ("slab", 25.0, "cream", "side", 256, None),
 }
 
