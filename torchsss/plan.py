@@ -492,8 +492,7 @@ class SceneFacts:
         sources = tuple(source_count(mesh, h) for h in hs)
         wanted = tuple(min(mesh.num_faces, source_faces(area, h)) for h in hs)
         decimated = tuple(min(n, int(SOURCES_PER_FACE * w)) for n, w in zip(sources, wanted))
-        dev = {w: surface_deviation(mesh, _source_mesh(given, w)) for w in sorted(set(wanted), reverse=True)
-               if w * 2 <= mesh.num_faces}
+        dev = {w: surface_deviation(mesh, _source_mesh(given, w)) for w in set(wanted) if w * 2 <= mesh.num_faces}
         deviation = tuple(dev.get(w, 0.0) for w in wanted)
         facts = cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
                    median_edge_mm=median_edge, convex=convex, thickness_mm=thickness, pixel_mm=pixel,

@@ -182,8 +182,9 @@ def _alias_solver(sa: Tensor, ss: Tensor, et: Tensor, shells: int = 4):
     """:func:`splat_alias_error` of one validated float64 material as a function of the spacing alone.
 
     The bisection's inner loop: the material's terms and the lattice are built once and each call evaluates the
-    closed-form spectrum without checks (:meth:`~torchsss.physics.dipole.DipoleTerms.spectrum`; 2.4 ms -> ~0.1 ms
-    a call for the planner's nine eps x three channels). ``h`` broadcasts with the material's shape.
+    closed-form spectrum without checks (:meth:`~torchsss.physics.dipole.DipoleTerms.spectrum`). splat_spacing's
+    bisection for the planner's nine eps x three channels took 0.12 s with a checked call per step, 0.011 s with
+    this. ``h`` broadcasts with the material's shape.
     """
     terms = dipole_terms(sa.unsqueeze(-1), ss.unsqueeze(-1), et.unsqueeze(-1))
     k_unit = 2.0 * math.pi * _lattice_norms(shells, sa.device)
