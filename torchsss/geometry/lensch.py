@@ -1167,7 +1167,10 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     pf, pc = ring_face[slot], ring_corner[slot]  # (pairs,) face and the corner of i in it
     fv = faces[pf]  # (pairs, 3)
     j = cols[pair_entry]
-    has_j = (fv == j[:, None]).any(1)
+    # vertices by position: on a mesh split at creases (:func:`~torchsss.geometry.mesh.split_creases`) a copy of
+    # ``j`` on the other side of the crease is the profile's peak as much as ``j`` itself
+    same = torch.unique(v, dim=0, return_inverse=True)[1]
+    has_j = (same[fv] == same[j][:, None]).any(1)
     area = mesh.face_areas.detach().to(torch.float64)[pf]
     # regular rule where the face does not hold j
     reg = (~has_j).nonzero()[:, 0]
@@ -1251,7 +1254,7 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
         dj = has_j_rows[lo:lo + block]
         fvd = fv[dj]
         jj = j[dj]
-        apex_corner = (fvd == jj[:, None]).to(torch.int64).argmax(1)
+        apex_corner = (same[fvd] == same[jj][:, None]).to(torch.int64).argmax(1)
         a_corner, b_corner = (apex_corner + 1) % 3, (apex_corner + 2) % 3
         x0 = v[jj]
         xa = v[fvd.gather(1, a_corner[:, None])[:, 0]]

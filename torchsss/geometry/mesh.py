@@ -22,6 +22,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from torch import Tensor
 
@@ -34,6 +36,7 @@ __all__ = [
     "decimate",
     "mesh_from_arrays",
     "normalize_to_size",
+    "split_creases",
     "surface_deviation",
 ]
 
@@ -747,6 +750,88 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
         mm_per_unit=mesh.mm_per_unit,
         warn_dropped=False,
     )
+
+
+def split_creases(mesh: Mesh, crease_deg: float = CREASE_DEG) -> tuple[Mesh, Tensor]:
+    """The mesh with every vertex split into one copy per smooth fan of its faces, parted at creases.
+
+    Around each vertex, two faces that share an edge through it stay on one copy unless the edge is a crease (its
+    faces' normals turn by more than ``crease_deg``, the rule of :meth:`Mesh.corner_normals`) or is not shared by
+    exactly two faces. A box's corner becomes three copies, a vertex on its edge two, a vertex of a scan with no
+    crease one. The faces keep their order (each corner points at its copy), so anything indexed by face (an atlas,
+    ``face_uvs``) still fits; the copies sit at their original's position (gathered, differentiable). Hat functions
+    on the result do not reach across a crease: a function carried by them may jump there (the light that enters a
+    slab's rim stays on the rim's hats).
+
+    Args:
+        mesh: The mesh.
+        crease_deg: Dihedral angle in degrees above which an edge parts the fans, in (0, 180].
+
+    Returns:
+        ``(split, origin)``: the split mesh (``mesh`` itself where nothing is split) and :math:`(V',)` int64, the
+        original vertex of every copy.
+
+    Raises:
+        TypeError: ``mesh`` not a :class:`Mesh`, or a non-numeric ``crease_deg``.
+        ValueError: ``crease_deg`` outside (0, 180].
+
+    Examples:
+        >>> from torchsss.geometry.procedural import slab
+        >>> m = slab(10.0, 10.0, 1.0, segments=2)
+        >>> split, origin = split_creases(m)
+        >>> m.num_vertices, split.num_vertices, split.num_faces == m.num_faces  # corners 8 x 3, rim points 8 x 2, 2
+        (18, 42, True)
+        >>> bool((split.vertices == m.vertices[origin]).all())
+        True
+    """
+    mesh = check_mesh(mesh)
+    crease = _check_positive_number(crease_deg, "crease_deg")
+    if crease > 180.0:
+        raise ValueError(f"crease_deg: expected an angle in (0, 180] degrees, got {crease_deg!r}")
+    faces = mesh.faces.detach().cpu().numpy()
+    nf = faces.shape[0]
+    if nf == 0:
+        return mesh, torch.arange(mesh.num_vertices, device=mesh.device)
+    normal = mesh.face_normals.detach().to(torch.float64).cpu().numpy()
+    # every edge as (face, corner k): the edge from corner k to corner k + 1
+    a, b = faces, np.roll(faces, -1, axis=1)
+    lo, hi = np.minimum(a, b).reshape(-1), np.maximum(a, b).reshape(-1)
+    key = lo * mesh.num_vertices + hi
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    start = np.r_[True, ks[1:] != ks[:-1]]
+    count = np.diff(np.r_[np.flatnonzero(start), ks.size])
+    first = order[np.flatnonzero(start)[count == 2]]  # edges shared by exactly two faces
+    second = order[np.flatnonzero(start)[count == 2] + 1]
+    fa, ka = first // 3, first % 3
+    fb, kb = second // 3, second % 3
+    smooth = (normal[fa] * normal[fb]).sum(-1) >= math.cos(math.radians(crease))
+    fa, ka, fb, kb = fa[smooth], ka[smooth], fb[smooth], kb[smooth]
+    # join the corners of the shared edge's two ends across the two faces (a corner is face * 3 + k)
+    va = faces[fa, ka]
+    kb_same = np.where(faces[fb, kb] == va, kb, (kb + 1) % 3)  # fb's corner at va
+    ends_a = np.stack([fa * 3 + ka, fa * 3 + (ka + 1) % 3])
+    ends_b = np.stack([fb * 3 + kb_same, fb * 3 + np.where(kb_same == kb, (kb + 1) % 3, kb)])
+    n = 3 * nf
+    graph = coo_matrix((np.ones(ends_a.size), (ends_a.reshape(-1), ends_b.reshape(-1))), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    corner_vertex = faces.reshape(-1)
+    # one copy per (vertex, fan); the copies of an unsplit vertex keep its index, the others follow
+    pair = corner_vertex.astype(np.int64) * n + label
+    uniq, inverse = np.unique(pair, return_inverse=True)
+    if uniq.size == mesh.num_vertices:
+        return mesh, torch.arange(mesh.num_vertices, device=mesh.device)
+    owner = uniq // n
+    is_first = np.r_[True, owner[1:] != owner[:-1]]
+    new_id = np.where(is_first, owner, 0)
+    extra = np.flatnonzero(~is_first)
+    new_id[extra] = mesh.num_vertices + np.arange(extra.size)
+    origin = np.empty(mesh.num_vertices + extra.size, dtype=np.int64)
+    origin[new_id] = owner
+    device = mesh.device
+    origin_t = torch.from_numpy(origin).to(device)
+    split_faces = torch.from_numpy(new_id[inverse].reshape(nf, 3)).to(device)
+    return replace(mesh, vertices=mesh.vertices[origin_t], faces=split_faces), origin_t
 
 
 #: The fine mesh's vertices :func:`surface_deviation` measures at most (a seeded sample beyond).
