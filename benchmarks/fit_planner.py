@@ -53,8 +53,8 @@ from bench_trade import calibration_scenes, scene_key  # noqa: E402
 
 ERROR_KEYS = {
     "reference": ["ref_err_floor", "ref_err_n"],
-    "splat": ["splat_floor", "splat_trunc", "splat_alias", "splat_u_floor", "splat_u_trunc", "splat_u_alias",
-              "splat_q_depth", "splat_obj", "splat_obj_p", "splat_obj_convex"],
+    "splat": ["splat_floor", "splat_alias", "splat_u_floor", "splat_u_alias", "splat_obj", "splat_obj_p",
+              "splat_obj_convex"],
     "icdf": ["icdf_a", "icdf_p", "icdf_floor", "icdf_u", "icdf_q_depth", "icdf_q_spread"],
     "hybrid": ["hybrid_a", "hybrid_p", "hybrid_floor", "hybrid_u", "hybrid_u_floor", "hybrid_q_depth"],
     "lensch": ["lensch_floor", "lensch_texel", "lensch_blend"],
@@ -69,8 +69,8 @@ SETUP_KEYS = {"reference": ["ref_s0", "ref_s_src"], "icdf": ["icdf_s0", "icdf_s_
 ERROR_FLOOR = 0.003
 #: Weight of an under-predicted error against an over-predicted one.
 UNDER = 10.0
-EXPONENTS = {"splat_u_floor", "splat_u_trunc", "splat_u_alias", "icdf_u", "hybrid_u", "icdf_p", "hybrid_p",
-             "icdf_q_spread", "hybrid_u_floor", "splat_q_depth", "icdf_q_depth", "hybrid_q_depth", "splat_obj_p",
+EXPONENTS = {"splat_u_floor", "splat_u_alias", "icdf_u", "hybrid_u", "icdf_p", "hybrid_p",
+             "icdf_q_spread", "hybrid_u_floor", "icdf_q_depth", "hybrid_q_depth", "splat_obj_p",
              "icdf_face_p"}
 
 

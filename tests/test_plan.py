@@ -495,17 +495,18 @@ def test_source_mesh_ladder_decimates_from_the_coarsest_finer_mesh_made():
 
 
 def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
-    # the splat budget drops the profile's energy between r_max(eps) and the object's diameter from every splat,
-    # front-lit too: the predicted error is at least that (closed form: eps itself on an object far wider than
-    # r_max), and nothing is dropped where r_max spans the object (a 5 mm chicken1 bunny, front-lit, measured 2.72%
-    # at eps 0.03 and 0.1 alike, every oversample: its error is not the truncation's)
+    # the predicted error holds the truncation the scene's facts computed (truncation_error at r_max(eps), SPLAT_EPS)
+    # and, for an eps they do not hold, the planar tail between r_max and the object's diameter (closed form: at
+    # most eps itself); nothing is dropped where r_max spans the object (a 5 mm chicken1 bunny, front-lit, measured
+    # 2.72% at eps 0.03 and 0.1 alike, every oversample: its error is not the truncation's); the floor holds too
     from torchsss.physics.budget import profile_tail_fraction
-    from torchsss.plan import _Profile
+    from torchsss.plan import SPLAT_EPS, _Profile
 
     for size in (5.0, 80.0):
         s = _scene(res=16, light=(0.0, 0.0, 1.0), material="chicken1", size=size)
         facts = SceneFacts.from_scene(s)
         prof = _Profile.of(s.material)
+        assert len(facts.splat_truncation) == len(SPLAT_EPS)
         for eps in (0.003, 0.01, 0.03, 0.1):
             r, diameter = prof.r_max(eps), 2.0 * facts.radius_mm
             cut = prof.tail_between(r, diameter)
@@ -516,11 +517,102 @@ def test_splat_truncation_and_sample_floor_hold_whatever_the_light():
             assert cut <= eps * (1 + 1e-6) and (cut == 0.0) == (r >= diameter)
             err = predict("splat", {"eps": eps, "oversample": 4.0}, facts, s.material)["error"]
             floor = MODEL["splat_floor"] * max(facts.unlit, 0.1) ** MODEL["splat_u_floor"]
-            assert err >= max(cut, floor * 0.999)
+            trunc = facts.splat_truncation[SPLAT_EPS.index(eps)] if eps in SPLAT_EPS else cut
+            assert err >= max(trunc, floor * 0.999)
+            if r >= diameter and eps in SPLAT_EPS:
+                assert trunc == 0.0
         assert prof.tail_between(prof.r_max(0.03), 1e6) == pytest.approx(0.03, rel=1e-6)  # an unbounded object
     # a loose tolerance plans no fewer samples than the calibration measured (the N^-p law is not extrapolated)
     for method in ("icdf", "hybrid"):
         assert plan(s, 0.5, methods=[method]).knobs["samples"] >= 1024
+
+
+def _loop_truncation(mesh, profile, light_dir, eye, radii):
+    """truncation_error as loops over receivers and sources in float64 (faces at their centroids, the own face a
+    disk, the annulus inside two face spacings in the receiver's plane)."""
+    from torchsss.plan import _disk_moments
+
+    v, f = mesh.vertices.double(), mesh.faces
+    tri = v[f]
+    cross = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
+    area = 0.5 * cross.norm(dim=-1)
+    normal = cross / (2 * area[:, None])
+    c = tri.mean(1)
+    to_light = -torch.tensor(light_dir, dtype=torch.float64)
+    to_light = to_light / to_light.norm()
+    e = (normal @ to_light).clamp_min(0.0)
+    eye_t = torch.tensor(eye, dtype=torch.float64)
+    near = 2.0 * math.sqrt(float(area.mean()))
+
+    def prof(x):
+        return profile(x.reshape(-1, 1)).double().reshape(-1)
+
+    def disk(radius):
+        return _disk_moments(lambda x: profile(x).double(), torch.tensor([radius], dtype=torch.float64))[0][0]
+
+    num = [0.0] * len(radii)
+    den = 0.0
+    for i in range(f.shape[0]):
+        view = eye_t - c[i]
+        cos = float(normal[i] @ view / view.norm())
+        if cos <= 0:
+            continue
+        w = float(area[i]) * cos / float(view.norm()) ** 2
+        lum = e[i] * disk(math.sqrt(float(area[i]) / math.pi))
+        far = [torch.zeros(3, dtype=torch.float64) for _ in radii]
+        for j in range(f.shape[0]):
+            if j == i or e[j] <= 0:
+                continue
+            d = float((c[i] - c[j]).norm())
+            contrib = prof(torch.tensor([d], dtype=torch.float64)) * e[j] * area[j]
+            lum = lum + contrib
+            for k, radius in enumerate(radii):
+                if d > max(radius, near):
+                    far[k] = far[k] + contrib
+        for k, radius in enumerate(radii):
+            if radius < near:
+                far[k] = far[k] + e[i] * (disk(near) - disk(radius))
+            num[k] += w * float(far[k].square().sum())
+        den += w * float(lum.square().sum())
+    return [math.sqrt(n / den) for n in num]
+
+
+def test_truncation_error_against_a_loop_reference_and_closed_forms():
+    # the pairs in float32 through the profile's table, against float64 loops; a radius past the object drops
+    # nothing, a larger radius never more; a wide face-on slab (80 mm, skin1) drops what the plane's tail says
+    # (the channels' tails weighted by their radiosity), at two face resolutions alike
+    from torchsss.geometry import DirectionalLight
+    from torchsss.geometry.procedural import slab
+    from torchsss.modules import DipoleMaterial
+    from torchsss.physics import total_diffuse_reflectance
+    from torchsss.physics.budget import profile_tail_fraction
+    from torchsss.plan import truncation_error
+
+    mat = DipoleMaterial.from_preset("marble")
+    mesh = sphere(6.0, 1)  # 80 faces: no decimation, every receiver kept
+    radii = (0.3, 2.0, 5.0, 9.0, 20.0)
+    light = DirectionalLight((0.3, -0.2, -1.0), 1.0)
+    got = truncation_error(mesh, mat, [light], (0.0, 0.0, 40.0), radii)
+    with torch.no_grad():
+        want = _loop_truncation(mesh, mat, (0.3, -0.2, -1.0), (0.0, 0.0, 40.0), radii)
+    assert got == pytest.approx(want, rel=2e-3, abs=1e-7)
+    assert got[-1] == 0.0 and list(got) == sorted(got, reverse=True) and got[0] > 0.5
+    skin = DipoleMaterial.from_preset("skin1")
+    sa, ss = skin.sigma_a.detach().double(), skin.sigma_s_prime.detach().double()
+    lum = total_diffuse_reflectance(sa, ss).reshape(-1)
+    for radius in (2.0, 4.0):
+        tail = profile_tail_fraction(torch.tensor(radius, dtype=torch.float64), sa, ss).reshape(-1)
+        plane = float(((tail * lum).square().sum() / lum.square().sum()).sqrt())
+        for segments in (16, 48):
+            wide = slab(80.0, 80.0, 4.0, segments=segments)
+            (t,) = truncation_error(wide, skin, [DirectionalLight((0, 0, -1), 1.0)], (0.0, 0.0, 300.0), (radius,))
+            assert t == pytest.approx(plane, rel=0.2), (radius, segments, t, plane)
+    with pytest.raises(ValueError, match="radii"):
+        truncation_error(mesh, mat, [light], (0.0, 0.0, 40.0), (-1.0,))
+    with pytest.raises(ValueError, match="eye"):
+        truncation_error(mesh, mat, [light], (0.0, 0.0), (1.0,))
+    with pytest.raises(TypeError, match="profile"):
+        truncation_error(mesh, "marble", [light], (0.0, 0.0, 40.0), (1.0,))
 
 
 def test_rule_splat_budget_tighter_for_lower_tolerance():

@@ -68,7 +68,7 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import torch
@@ -181,8 +181,10 @@ MODEL: dict[str, float] = {
     # spheres and slabs measured 0.14-1.03% at 32 texels, 0.05-0.35% at 64). In sample at margin 1.1, 598
     # configuration x tolerance pairs accepted, 9 falsely, where the constants before accepted 516 (7). Earlier
     # constants: floor 0.0117, trunc 0.646, alias 0.148, u_floor 0.197, u_trunc 3.0, u_alias 0.503, q_depth 2.9
-    "splat_floor": 0.00467, "splat_trunc": 0.674, "splat_alias": 0.181,
-    "splat_u_floor": 0.557, "splat_u_trunc": 3.0, "splat_u_alias": 0.676, "splat_q_depth": 2.89,
+    # Since 2026-11-29 the truncation is computed on the scene (SceneFacts.splat_truncation, truncation_error), no
+    # longer the planar tail times a fitted max(0.674 u^3 d^2.89, 1): that term over-predicted 3-10x (the default
+    # scene at eps 0.003: 2.8% charged, 0.25% computed, 0.63% measured in all)
+    "splat_floor": 0.00467, "splat_alias": 0.181, "splat_u_floor": 0.557, "splat_u_alias": 0.676,
     "splat_obj": 0.0158, "splat_obj_p": 0.674, "splat_obj_convex": 3e-05,
     # icdf/hybrid: frame = t_pair * pixels * N + f0; setup = s0 + s_face * faces + s_texel * res^2;
     # error = hypot(floor (hybrid: * u^u_floor), a * [icdf: q^q_spread] * u^u * d^q_depth * (4096 / N)^p).
@@ -379,6 +381,9 @@ class SceneFacts:
             (:func:`~torchsss.geometry.grazing.split_grazing`), as the renderer makes them at a light view of
             :data:`FILL_GRID` texels, averaged over the point, spot and directional lights (about :math:`\\pi / 4`
             on a sphere lit face-on; 0.5 when there are none). Splat's frame time follows its sources.
+        splat_truncation: what splat's truncation at :math:`r_{max}(\\epsilon)` drops from the seen radiosity, per
+            :data:`SPLAT_EPS` (:func:`truncation_error`, closed form on the faces; 0 where :math:`r_{max}` spans the
+            object; () when not computed: the planar tail to the object's diameter is charged instead).
     """
 
     faces: int
@@ -411,6 +416,7 @@ class SceneFacts:
     narrowed_bounds_mm: tuple[float, ...] = ()
     narrowed_spread: float = 1.0
     light_fill: float = 0.5
+    splat_truncation: tuple[float, ...] = ()
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh: Mesh | None = None, *, throughput: bool = True,
@@ -495,6 +501,9 @@ class SceneFacts:
         decimated = tuple(min(n, int(SOURCES_PER_FACE * w)) for n, w in zip(sources, wanted))
         dev = _deviations(mesh, given, [w for w in wanted if w * 2 <= mesh.num_faces])
         deviation = tuple(dev.get(w, 0.0) for w in wanted)
+        radii = [prof.r_max(e) for e in SPLAT_EPS]
+        truncation = truncation_error(given, mat, scene.lights, cam.eye, radii) \
+            if min(radii) < 2.0 * radius else tuple(0.0 for _ in radii)
         facts = cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
                    median_edge_mm=median_edge, convex=convex, thickness_mm=thickness, pixel_mm=pixel,
                    covered_px=covered,
@@ -504,7 +513,8 @@ class SceneFacts:
                    throughput_entries=estimate_throughput_entries(mesh, mat, rows=64) if throughput else -1,
                    source_deviation_mm=deviation, local_bound_mm=hybrid_local_bound(mat, radius),
                    irradiance_detail=irradiance_detail(mesh, scene.lights), sampling_spread=-1.0,
-                   narrowed_spread=-1.0, light_fill=_light_fill(scene, mesh, float(mat.eta.detach().reshape(-1)[0])))
+                   narrowed_spread=-1.0, light_fill=_light_fill(scene, mesh, float(mat.eta.detach().reshape(-1)[0])),
+                   splat_truncation=truncation)
         if throughput:
             # on the mesh Lensch builds on: where the throughput would not fit, decimated as candidates() will
             # (larger vertex areas are cut less: the 30 mm marble bunny's full mesh 0.23-0.48%, where its Lensch
@@ -744,6 +754,8 @@ def irradiance_detail(mesh: Mesh, lights: Sequence) -> float:
 SPREAD_FACES = 3000
 #: The receivers :func:`sampling_spread` averages over (a random subset of the faces the camera faces, seeded).
 SPREAD_RECEIVERS = 1500
+#: The receivers :func:`truncation_error` averages over (its mean share needs fewer than the spread's variance).
+TRUNCATION_RECEIVERS = 500
 
 
 def _disk_moments(profile, radius: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -761,6 +773,147 @@ def _disk_moments(profile, radius: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     rd = profile(r.unsqueeze(-1))  # (F, q, C)
     jac = (2.0 * math.pi * r * radius[:, None] * wt[None, :]).unsqueeze(-1)
     return (rd * jac).sum(1), (rd.square() * jac).sum(1)
+
+
+class _Seen(NamedTuple):
+    """The faces :func:`sampling_spread` and :func:`truncation_error` work on (:func:`_seen_faces`)."""
+
+    vertices: torch.Tensor  # (V, 3) mm, float64
+    area: torch.Tensor  # (F,) mm^2
+    centroid: torch.Tensor  # (F, 3) mm
+    irradiance: torch.Tensor  # (F, C) unshadowed, through each face's normal
+    receivers: torch.Tensor  # (R,) faces the camera faces (at most SPREAD_RECEIVERS, seeded)
+    sources: torch.Tensor  # (S,) lit faces
+    weight: torch.Tensor  # (R,) each receiver's solid angle seen from the eye
+    flux: torch.Tensor  # (S, C) each source's irradiance times its area
+
+
+def _seen_faces(mesh: Mesh, lights: Sequence, eye: Sequence[float], receivers: int = SPREAD_RECEIVERS) -> _Seen | None:
+    """The lit faces and the faces the camera faces, on ``mesh`` decimated to :data:`SPREAD_FACES`.
+
+    At most ``receivers`` of the faces the camera faces (a seeded choice). None if either is empty. Raises
+    ValueError for an ``eye`` that is not three finite numbers.
+    """
+    try:
+        eye = [float(x) for x in eye]
+    except (TypeError, ValueError):
+        eye = None
+    if eye is None or len(eye) != 3 or not all(math.isfinite(x) for x in eye):
+        raise ValueError("eye: expected the camera's position as three finite numbers (mm)")
+    m = mesh.with_dtype(torch.float64)
+    if m.num_faces > SPREAD_FACES:
+        m = _source_mesh(mesh, SPREAD_FACES, ladder=True).with_dtype(torch.float64)
+    v, f = m.vertices.detach(), m.faces
+    area, normal, centroid, e = _face_irradiance(v, f, lights)
+    view = torch.tensor(eye, dtype=torch.float64, device=v.device) - centroid
+    dist = view.norm(dim=-1).clamp_min(1e-9)
+    cos = (normal * view).sum(-1) / dist
+    recv = (cos > 0).nonzero()[:, 0]
+    src = (e.sum(-1) > 0).nonzero()[:, 0]
+    if recv.numel() == 0 or src.numel() == 0:
+        return None
+    if recv.numel() > receivers:
+        pick = torch.randperm(recv.numel(), generator=torch.Generator().manual_seed(0))[:receivers]
+        recv = recv[pick.to(recv.device)]
+    w = area[recv] * cos[recv] / dist[recv].square()
+    return _Seen(v, area, centroid, e, recv, src, w, e[src] * area[src, None])
+
+
+def _fast_profile(profile, v: torch.Tensor):
+    """The pairs' profile in float32 from a table of it, over the extent of the vertices ``v``.
+
+    :func:`bulk_profile` is 2-6x faster than the formula, within 2e-5; float32 pairs are 2x faster than float64,
+    within 1e-5.
+    """
+    single = copy.deepcopy(profile).float() if isinstance(profile, torch.nn.Module) else profile
+    return bulk_profile(single, float((v.amax(0) - v.amin(0)).norm()) + 1e-6, torch.float32, v.device)
+
+
+def truncation_error(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float], radii: Sequence[float], *,
+                     receivers: int = TRUNCATION_RECEIVERS) -> tuple[float, ...]:
+    r"""The relative RMS of the seen radiosity that reaches each receiver from beyond each of ``radii`` (mm).
+
+    What a renderer that cuts the profile at a radius :math:`r` (splatting at :math:`r_{max}(\epsilon)`, the same
+    radius for every channel) drops: per receiver :math:`x` and channel, :math:`T_r(x) = \int_{|x - s| > r}
+    R_d(|x - s|) E(s)\,ds` against :math:`L(x) = \int R_d E\,ds`, and :math:`\sqrt{\sum_x w_x \sum_c T^2 /
+    \sum_x w_x \sum_c L^2}` over the faces the camera faces, weighted by their solid angle, as
+    :func:`sampling_spread` (closed form on the faces of the mesh decimated to :data:`SPREAD_FACES`, unshadowed
+    irradiance at the centroids, a receiver's own face as a disk of its area; 3-D distances, so light that crossed
+    a thick object counts as far; within two face spacings the surface is taken as the receiver's plane, lit as the
+    receiver). The planar tail :func:`~torchsss.physics.profile_tail_fraction` bounds it on a
+    wide flat object; on a curved or back-lit one it can be far smaller or larger (the default scene at
+    :math:`\epsilon` = 0.003: 0.25% where the planar tail to the object's diameter says 2.8%).
+
+    Args:
+        mesh: The object (mm).
+        profile: Its material: distances :math:`(..., 1)` mm -> :math:`R_d` :math:`(..., C)`.
+        lights: The scene's lights (environments are ignored).
+        eye: The camera's position (mm).
+        radii: The truncation radii (mm).
+        receivers: At most this many receivers (a seeded choice of the faces the camera faces).
+
+    Returns:
+        One relative error per radius (0 where no light is seen).
+
+    Raises:
+        TypeError: ``mesh`` not a Mesh, ``profile`` not callable.
+        ValueError: ``eye`` not three finite numbers, a negative or non-finite radius.
+
+    Examples:
+        >>> from torchsss.geometry import DirectionalLight, sphere
+        >>> from torchsss.modules import DipoleMaterial
+        >>> near, far = truncation_error(sphere(10.0, 3), DipoleMaterial.from_preset("skin1"),
+        ...                              [DirectionalLight((0, 0, -1), 1.0)], (0.0, 0.0, 40.0), (1.0, 30.0))
+        >>> 0.0 < near < 1.0 and far == 0.0
+        True
+    """
+    mesh = check_mesh(mesh)
+    if not callable(profile):
+        raise TypeError(f"profile: expected a callable profile (distances -> R_d), got {type(profile).__name__}")
+    try:
+        radii = [float(r) for r in radii]
+    except (TypeError, ValueError):
+        raise ValueError(f"radii: expected a sequence of radii in mm, got {radii!r}") from None
+    if not all(math.isfinite(r) and r >= 0.0 for r in radii):
+        raise ValueError(f"radii: expected finite radii >= 0 mm, got {radii}")
+    seen = _seen_faces(mesh, lights, eye, receivers)
+    if seen is None:
+        return tuple(0.0 for _ in radii)
+    v, area, centroid, e, recv, src, w, flux = seen
+    with torch.no_grad():
+        fast = _fast_profile(profile, v)
+        c32, flux32 = centroid.float(), flux.float()
+        at = torch.full((centroid.shape[0],), -1, dtype=torch.long, device=v.device)
+        at[src] = torch.arange(src.numel(), device=v.device)
+        lum = torch.zeros(recv.numel(), flux.shape[1], dtype=torch.float64, device=v.device)
+        far = torch.zeros(len(radii), *lum.shape, dtype=torch.float64, device=v.device)
+        # faces as points are a fair quadrature beyond two face spacings; a radius inside that is met in the plane
+        # (the receiver's own irradiance over the annulus from the radius to two spacings, a disk difference)
+        near = 2.0 * math.sqrt(float(area.mean()))
+        cuts = [max(radius, near) for radius in radii]
+        step = max(1, 2_000_000 // max(src.numel(), 1))
+        for lo in range(0, recv.numel(), step):
+            r = recv[lo:lo + step]
+            d = torch.cdist(c32[r], c32[src], compute_mode="donot_use_mm_for_euclid_dist")
+            own_row = (at[r] >= 0).nonzero()[:, 0]
+            rd = fast(d.unsqueeze(-1))
+            rd[own_row, at[r][own_row]] = 0.0  # a receiver's own face: a disk below
+            lum[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux32).double()
+            for k, radius in enumerate(cuts):
+                cut = (d > radius).unsqueeze(-1).float()
+                far[k, lo:lo + step] = torch.einsum("rsc,sc->rc", rd * cut, flux32).double()
+        profile64 = lambda x: profile(x).double()  # noqa: E731
+        own, _ = _disk_moments(profile64, (area[recv] / math.pi).sqrt())
+        ones = torch.ones(1, dtype=torch.float64, device=v.device)
+        for k, radius in enumerate(radii):
+            if radius < near:
+                ring = _disk_moments(profile64, near * ones)[0] - _disk_moments(profile64, radius * ones)[0]
+                far[k] += e[recv] * ring
+    lum = lum + e[recv] * own
+    den = float((w[:, None] * lum.square()).sum())
+    if den <= 0.0:
+        return tuple(0.0 for _ in radii)
+    return tuple(math.sqrt(float((w[:, None] * far[k].square()).sum()) / den) for k in range(len(radii)))
 
 
 def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float], *, sampled=None) -> float:
@@ -809,34 +962,12 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float],
         raise TypeError(f"profile: expected a callable profile (distances -> R_d), got {type(profile).__name__}")
     if sampled is not None and not callable(sampled):
         raise TypeError(f"sampled: expected a callable profile part or None, got {type(sampled).__name__}")
-    try:
-        eye = [float(x) for x in eye]
-    except (TypeError, ValueError):
-        eye = None
-    if eye is None or len(eye) != 3 or not all(math.isfinite(x) for x in eye):
-        raise ValueError("eye: expected the camera's position as three finite numbers (mm)")
-    m = mesh.with_dtype(torch.float64)
-    if m.num_faces > SPREAD_FACES:
-        m = _source_mesh(mesh, SPREAD_FACES, ladder=True).with_dtype(torch.float64)
-    v, f = m.vertices.detach(), m.faces
-    area, normal, centroid, e = _face_irradiance(v, f, lights)
-    view = torch.tensor([float(x) for x in eye], dtype=torch.float64, device=v.device) - centroid
-    dist = view.norm(dim=-1).clamp_min(1e-9)
-    cos = (normal * view).sum(-1) / dist
-    recv = (cos > 0).nonzero()[:, 0]
-    src = (e.sum(-1) > 0).nonzero()[:, 0]
-    if recv.numel() == 0 or src.numel() == 0:
+    seen = _seen_faces(mesh, lights, eye)
+    if seen is None:
         return 1.0
-    if recv.numel() > SPREAD_RECEIVERS:
-        pick = torch.randperm(recv.numel(), generator=torch.Generator().manual_seed(0))[:SPREAD_RECEIVERS]
-        recv = recv[pick.to(recv.device)]
-    w = area[recv] * cos[recv] / dist[recv].square()
-    flux = e[src] * area[src, None]  # (S, C)
+    v, area, centroid, e, recv, src, w, flux = seen
     with torch.no_grad():
-        # the pairs in float32 (2x faster than in float64, within 1e-5 of it): their distances, the profile from
-        # a table of it (bulk_profile: 2-6x faster than the formula, within 2e-5) and the sums over the sources
-        single = copy.deepcopy(profile).float() if isinstance(profile, torch.nn.Module) else profile
-        fast = bulk_profile(single, float((v.amax(0) - v.amin(0)).norm()) + 1e-6, torch.float32, v.device)
+        fast = _fast_profile(profile, v)
         c32, flux32 = centroid.float(), flux.float()
         # a receiver's own face is a disk below (_disk_moments): its pair is dropped
         at = torch.full((centroid.shape[0],), -1, dtype=torch.long, device=v.device)
@@ -1216,19 +1347,24 @@ def predict(method: str, knobs: dict, facts: SceneFacts, material, *, decimate: 
         grid = grid_for(2.0 * facts.radius_mm, h, over)  # splat_grid's rule
         texel = 2.0 * facts.radius_mm / grid
         # the light view's texels per splat spacing as built (at least MIN_GRID x oversample, at most 512: a small
-        # object is oversampled far more than asked), and the truncated energy that lies on the object: a splat
-        # cut at r_max drops the profile's tail between r_max and the object's diameter, none when r_max spans it
+        # object is oversampled far more than asked)
         over_eff = h / texel
         r = prof.r_max(eps)
-        cut = prof.tail_between(r, 2.0 * facts.radius_mm)
-        u, d = max(facts.unlit, 0.1), depth(facts)
+        # what the truncation at r_max drops from the seen radiosity, computed on the scene (not fitted; 3-D
+        # distances: light that crossed a thick back-lit object is far); for an eps the facts do not hold, the
+        # planar tail between r_max and the object's diameter (what a wide flat object loses)
+        if facts.splat_truncation and eps in SPLAT_EPS:
+            cut = facts.splat_truncation[SPLAT_EPS.index(eps)]
+        else:
+            cut = prof.tail_between(r, 2.0 * facts.radius_mm)
+        u = max(facts.unlit, 0.1)
         # and the irradiance itself sampled at the object's scale: MIN_GRID texels across it at oversample 1 (a side-lit
         # 8 mm potato torus 1.9% at grid 32, 0.5% at 128, where its profile asks for a handful of texels), less on a
         # convex object, whose irradiance n.l has no shadows and varies smoothly
         obj = m["splat_obj"] * (m["splat_obj_convex"] if facts.convex else 1.0) * (MIN_GRID / grid) ** m["splat_obj_p"]
         err = math.sqrt((m["splat_floor"] * u ** m["splat_u_floor"]) ** 2 + obj ** 2
                         + (m["splat_alias"] * u ** m["splat_u_alias"] * prof.alias_share(eps) / over_eff ** 2) ** 2
-                        + (max(m["splat_trunc"] * u ** m["splat_u_trunc"] * d ** m["splat_q_depth"], 1.0) * cut) ** 2)
+                        + cut ** 2)
         footprint = min(px, math.pi * (r / facts.pixel_mm) ** 2)
         splats = facts.light_fill * grid * grid  # the light view's sources (texels that see the object, cut pieces)
         # eager (window or tile): the pairs in reach, each through the profile's table
