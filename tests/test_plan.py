@@ -1049,3 +1049,20 @@ def test_deviations_measure_three_counts_and_interpolate_the_others_within_twent
             assert dev[w] == pytest.approx(want, rel=0.2)
     calls.clear()
     assert plan_mod._deviations(bumpy, bumpy, [1500, 3900, 7500]).keys() == {1500, 3900, 7500} and len(calls) == 3
+
+
+def test_splat_truncation_not_computed_under_an_environment():
+    # an environment's light is not in truncation_error's closed form: the facts hold none, and predict charges the
+    # planar tail between r_max and the object's diameter instead
+    from torchsss.geometry import EnvironmentLight
+    from torchsss.plan import _Profile
+
+    s = _scene(size=40.0, res=16)
+    lit = SceneFacts.from_scene(s)
+    assert len(lit.splat_truncation) == 3
+    sky = dataclasses.replace(s, lights=(*s.lights, EnvironmentLight.uniform(0.2)))
+    facts = SceneFacts.from_scene(sky)
+    assert facts.splat_truncation == ()
+    prof = _Profile.of(s.material)
+    cut = prof.tail_between(prof.r_max(0.03), 2.0 * facts.radius_mm)
+    assert cut > 0 and predict("splat", {"eps": 0.03, "oversample": 4.0}, facts, s.material)["error"] >= cut

@@ -74,6 +74,7 @@ import numpy as np
 import torch
 
 from torchsss._checks import validation
+from torchsss.geometry.environment import EnvironmentLight
 from torchsss.geometry.lensch import (
     ATLAS_UTILIZATION,
     BLEND_MIN_REACH,
@@ -501,9 +502,15 @@ class SceneFacts:
         decimated = tuple(min(n, int(SOURCES_PER_FACE * w)) for n, w in zip(sources, wanted))
         dev = _deviations(mesh, given, [w for w in wanted if w * 2 <= mesh.num_faces])
         deviation = tuple(dev.get(w, 0.0) for w in wanted)
+        # splat's truncation on the scene; not under an environment (its light, smooth over the surface, is not in
+        # the closed form: the planar tail is charged instead)
         radii = [prof.r_max(e) for e in SPLAT_EPS]
-        truncation = truncation_error(given, mat, scene.lights, cam.eye, radii) \
-            if min(radii) < 2.0 * radius else tuple(0.0 for _ in radii)
+        if any(isinstance(light, EnvironmentLight) for light in scene.lights):
+            truncation = ()
+        elif min(radii) < 2.0 * radius:
+            truncation = truncation_error(given, mat, scene.lights, cam.eye, radii)
+        else:
+            truncation = tuple(0.0 for _ in radii)
         facts = cls(faces=mesh.num_faces, size_mm=float(mesh.size_mm), area_mm2=area, radius_mm=radius,
                    median_edge_mm=median_edge, convex=convex, thickness_mm=thickness, pixel_mm=pixel,
                    covered_px=covered,
@@ -782,7 +789,7 @@ class _Seen(NamedTuple):
     area: torch.Tensor  # (F,) mm^2
     centroid: torch.Tensor  # (F, 3) mm
     irradiance: torch.Tensor  # (F, C) unshadowed, through each face's normal
-    receivers: torch.Tensor  # (R,) faces the camera faces (at most SPREAD_RECEIVERS, seeded)
+    receivers: torch.Tensor  # (R,) faces the camera faces (at most _seen_faces' receivers, seeded)
     sources: torch.Tensor  # (S,) lit faces
     weight: torch.Tensor  # (R,) each receiver's solid angle seen from the eye
     flux: torch.Tensor  # (S, C) each source's irradiance times its area
