@@ -167,3 +167,16 @@ def test_a_rim_only_irradiance_stays_on_the_rim_hats():
     assert float(out["split"][top].abs().max()) < 1e-9
     torch.testing.assert_close(out["split"][chart & rim], e[0, 0][chart & rim], rtol=0, atol=1e-6)
     assert float(out["whole"][top].abs().max()) > 0.2  # the test can fail: unsplit hats leak
+
+
+def test_lensch_build_reports_its_crease_angle_to_a_renderer_around_it():
+    # a renderer around a built scene takes the crease angle it was built with, not its default
+    from torchsss.pipelines.lensch import LenschRenderer, build_lensch
+
+    m = slab(6.0, 6.0, 0.8, segments=2)
+    for crease in (None, CREASE_DEG):
+        built = build_lensch(m, "cream", resolution=64, crease_deg=crease)
+        assert built.stats["crease_deg"] == crease
+        assert built.stats["split_vertices"] == (0 if crease is None else split_creases(m)[0].num_vertices
+                                                 - m.num_vertices)
+        assert LenschRenderer.from_built(built).knobs["crease_deg"] == crease

@@ -836,6 +836,28 @@ def _fast_profile(profile, v: torch.Tensor):
     return bulk_profile(single, float((v.amax(0) - v.amin(0)).norm()) + 1e-6, torch.float32, v.device)
 
 
+def _pair_blocks(seen: _Seen, fast):
+    """The (receiver, source) pairs of ``seen`` in blocks of receivers (about 2M pairs each), outside autograd.
+
+    Yields ``(block, d, rd, own)``: the receivers' slice, their distances to every source :math:`(r, S, 1)` mm in
+    float32, the profile ``fast`` there :math:`(r, S, C)` with each receiver's own face's pair set to 0 (a disk of
+    its area stands for it, :func:`_disk_moments`), and that pair's ``(rows, cols)``.
+    """
+    v, _, centroid, _, recv, src, _, _ = seen
+    c32 = centroid.float()
+    at = torch.full((centroid.shape[0],), -1, dtype=torch.long, device=v.device)
+    at[src] = torch.arange(src.numel(), device=v.device)
+    step = max(1, 2_000_000 // max(src.numel(), 1))
+    for lo in range(0, recv.numel(), step):
+        r = recv[lo:lo + step]
+        d = torch.cdist(c32[r], c32[src], compute_mode="donot_use_mm_for_euclid_dist").unsqueeze(-1)
+        own_row = (at[r] >= 0).nonzero()[:, 0]
+        own = (own_row, at[r][own_row])
+        rd = fast(d)
+        rd[own] = 0.0
+        yield slice(lo, lo + step), d, rd, own
+
+
 def truncation_error(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float], radii: Sequence[float], *,
                      receivers: int = TRUNCATION_RECEIVERS) -> tuple[float, ...]:
     r"""The relative RMS of the seen radiosity that reaches each receiver from beyond each of ``radii`` (mm).
@@ -886,29 +908,19 @@ def truncation_error(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float]
     seen = _seen_faces(mesh, lights, eye, receivers)
     if seen is None:
         return tuple(0.0 for _ in radii)
-    v, area, centroid, e, recv, src, w, flux = seen
+    v, area, _, e, recv, _, w, flux = seen
     with torch.no_grad():
-        fast = _fast_profile(profile, v)
-        c32, flux32 = centroid.float(), flux.float()
-        at = torch.full((centroid.shape[0],), -1, dtype=torch.long, device=v.device)
-        at[src] = torch.arange(src.numel(), device=v.device)
+        flux32 = flux.float()
         lum = torch.zeros(recv.numel(), flux.shape[1], dtype=torch.float64, device=v.device)
         far = torch.zeros(len(radii), *lum.shape, dtype=torch.float64, device=v.device)
         # faces as points are a fair quadrature beyond two face spacings; a radius inside that is met in the plane
         # (the receiver's own irradiance over the annulus from the radius to two spacings, a disk difference)
         near = 2.0 * math.sqrt(float(area.mean()))
         cuts = [max(radius, near) for radius in radii]
-        step = max(1, 2_000_000 // max(src.numel(), 1))
-        for lo in range(0, recv.numel(), step):
-            r = recv[lo:lo + step]
-            d = torch.cdist(c32[r], c32[src], compute_mode="donot_use_mm_for_euclid_dist")
-            own_row = (at[r] >= 0).nonzero()[:, 0]
-            rd = fast(d.unsqueeze(-1))
-            rd[own_row, at[r][own_row]] = 0.0  # a receiver's own face: a disk below
-            lum[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux32).double()
+        for block, d, rd, _ in _pair_blocks(seen, _fast_profile(profile, v)):
+            lum[block] = torch.einsum("rsc,sc->rc", rd, flux32).double()
             for k, radius in enumerate(cuts):
-                cut = (d > radius).unsqueeze(-1).float()
-                far[k, lo:lo + step] = torch.einsum("rsc,sc->rc", rd * cut, flux32).double()
+                far[k, block] = torch.einsum("rsc,sc->rc", rd * (d > radius).float(), flux32).double()
         profile64 = lambda x: profile(x).double()  # noqa: E731
         own, _ = _disk_moments(profile64, (area[recv] / math.pi).sqrt())
         ones = torch.ones(1, dtype=torch.float64, device=v.device)
@@ -972,35 +984,24 @@ def sampling_spread(mesh: Mesh, profile, lights: Sequence, eye: Sequence[float],
     seen = _seen_faces(mesh, lights, eye)
     if seen is None:
         return 1.0
-    v, area, centroid, e, recv, src, w, flux = seen
+    v, area, _, e, recv, _, w, flux = seen
     with torch.no_grad():
-        fast = _fast_profile(profile, v)
-        c32, flux32 = centroid.float(), flux.float()
-        # a receiver's own face is a disk below (_disk_moments): its pair is dropped
-        at = torch.full((centroid.shape[0],), -1, dtype=torch.long, device=v.device)
-        at[src] = torch.arange(src.numel(), device=v.device)
+        flux32 = flux.float()
         out_l = torch.zeros(recv.numel(), flux.shape[1], dtype=torch.float64, device=v.device)
         out_s = torch.zeros_like(out_l)
         out_g = torch.zeros_like(out_l) if sampled is not None else out_l
-        step = max(1, 2_000_000 // max(src.numel(), 1))
-        for lo in range(0, recv.numel(), step):
-            r = recv[lo:lo + step]
-            d = torch.cdist(c32[r], c32[src], compute_mode="donot_use_mm_for_euclid_dist").unsqueeze(-1)
-            own_row = (at[r] >= 0).nonzero()[:, 0]
-            own_col = at[r][own_row]
-            rd = fast(d)
-            rd[own_row, own_col] = 0.0
-            out_l[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux32).double()
+        for block, d, rd, own in _pair_blocks(seen, _fast_profile(profile, v)):
+            out_l[block] = torch.einsum("rsc,sc->rc", rd, flux32).double()
             if isinstance(sampled, SplitProfile) and sampled.material is profile:
                 # a split of this profile (the hybrid's global part): the table's profile times the split's weight
                 w_l = sampled.weight(d)
                 rd = rd * (w_l if sampled.part == "local" else 1.0 - w_l)
-                out_g[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux32).double()
+                out_g[block] = torch.einsum("rsc,sc->rc", rd, flux32).double()
             elif sampled is not None:
                 rd = sampled(d.double()).float()
-                rd[own_row, own_col] = 0.0
-                out_g[lo:lo + step] = torch.einsum("rsc,sc->rc", rd, flux32).double()
-            out_s[lo:lo + step] = torch.einsum("rsc,sc->rc", rd.square_(), flux32).double()
+                rd[own] = 0.0
+                out_g[block] = torch.einsum("rsc,sc->rc", rd, flux32).double()
+            out_s[block] = torch.einsum("rsc,sc->rc", rd.square_(), flux32).double()
         radius = (area[recv] / math.pi).sqrt()
         d1, d2 = _disk_moments(lambda x: profile(x).double(), radius)
         g1, g2 = (d1, d2) if sampled is None else _disk_moments(lambda x: sampled(x).double(), radius)

@@ -160,6 +160,7 @@ def build_lensch(mesh: Mesh, material: Material | nn.Module, *, resolution: int 
         stats.update(t_hat_s=time.perf_counter() - t3, hat_entries=int(hat.entries.numel()),
                      hat_terms=int(hat.term_entry.numel()))
     stats["detail"] = detail
+    stats["crease_deg"] = crease_deg
     # the kernels' taps derived from the atlas's maps whenever the kernels are evaluated (not stored)
     local = LocalResponse.from_atlas(atlas, kernel_size, mat, correction=correction)
     glob = GlobalResponse(weights, tp, mat, atlas.valid_mask, hat=hat, copy=False)  # the throughput handed over
@@ -200,7 +201,8 @@ class LenschRenderer(Renderer):
     def from_built(cls, built: LenschScene, **knobs) -> LenschRenderer:
         """A renderer around an existing :func:`build_lensch` result (no new setup)."""
         fixed = {"kernel_size": int(built.module.local.kernel_size), "blend": built.module.direct is not None,
-                 "detail": built.module.detail, "layout": "dense" if built.module.global_response.dense else "sparse"}
+                 "detail": built.module.detail, "layout": "dense" if built.module.global_response.dense else "sparse",
+                 "crease_deg": built.stats.get("crease_deg", CREASE_DEG)}
         return super().from_built(built, **{**knobs, **fixed})
 
     def _build(self) -> None:
