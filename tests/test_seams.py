@@ -43,7 +43,7 @@ def seam_band(renderer, camera) -> torch.Tensor:
     """:math:`(H, W)` bool: covered pixels whose atlas texel lies within ``BAND_TEXELS`` (scaled to a 512 atlas) of
     another chart or of an invalid (gutter) texel."""
     gb = camera_gbuffer(renderer.mesh, camera)
-    uv = renderer.view.uv(camera, gb.position, gb.mask)[0]  # (2, H, W), v up
+    uv = renderer.view.uv(camera, gb.position, gb.mask, gb.face_id)[0]  # (2, H, W), v up
     atlas = renderer.atlas
     k = 2 * max(1, round(BAND_TEXELS * atlas.resolution / 512)) + 1
     chart = torch.where(atlas.valid_mask.bool(), atlas.chart_id, torch.full_like(atlas.chart_id, -1)).double()

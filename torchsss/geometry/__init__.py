@@ -50,6 +50,7 @@ from torchsss.geometry.objects import merge_meshes, object_ids, object_masks
 from torchsss.geometry.peel import EnvironmentSplats, axis_camera, environment_splats
 from torchsss.geometry.procedural import plane, slab, sphere, torus
 from torchsss.geometry.raster import Raster, depth_peel, interpolate, rasterize, rasterize_uv
+from torchsss.geometry.refine import feature_edges, refine_creases
 from torchsss.geometry.sampling import SurfaceSamples, subdivision_barycentrics, surface_samples
 from torchsss.geometry.shadow import ShadowMap, bounding_sphere, build_shadow_map, light_camera, shadow_visibility
 from torchsss.geometry.visibility import point_inside, ray_visibility
@@ -94,6 +95,7 @@ __all__ = [
     "depth_peel",
     "environment_irradiance",
     "environment_splats",
+    "feature_edges",
     "hat_quadrature",
     "incident_light",
     "interpolate",
@@ -119,6 +121,7 @@ __all__ = [
     "rasterize",
     "rasterize_uv",
     "ray_visibility",
+    "refine_creases",
     "shadow_visibility",
     "slab",
     "sphere",

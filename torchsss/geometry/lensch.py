@@ -39,6 +39,7 @@ from torchsss.geometry.atlas import Atlas
 from torchsss.geometry.lights import incident_light
 from torchsss.geometry.mesh import Mesh, check_mesh
 from torchsss.geometry.sampling import subdivision_barycentrics
+from torchsss.geometry.transfer import closest_point_on_triangle
 
 __all__ = [
     "MAX_THROUGHPUT_ENTRIES",
@@ -59,6 +60,7 @@ __all__ = [
     "hat_quadrature",
     "kernel_reach",
     "local_kernel_geometry",
+    "median_edge",
     "plan_kernel_size",
     "plan_lensch",
     "throughput_cut",
@@ -300,7 +302,9 @@ def vertex_weights(mesh: Mesh, atlas: Atlas, *, discrete: bool = True) -> Vertex
     :math:`G_f = \\sum_{texels \\in f} w\\, \\beta \\beta^T` (the continuum :math:`G_f` gives :math:`4\\beta - 1`
     back). The projection then reproduces every function linear on the faces exactly at the texels, and conserves
     the weighted flux (:math:`M_f^T 1 = 1` because :math:`G_f 1 = A_f/3\\, 1`): a constant is that constant at
-    every vertex. Faces with fewer texels (or a near-singular :math:`G_f`) keep :math:`(4\\beta - 1) A`.
+    every vertex. Faces with fewer texels (or a near-singular :math:`G_f`: a sliver 1-3 texels across) project
+    their mean instead, :math:`A_f/3` times the texels' area-weighted mean for each of their hats (exact for a
+    constant; until 2026-12-07 the continuum :math:`(4\\beta - 1) A`, 5-10% low on a graded slab's thin rows).
 
     Args:
         mesh: The mesh the atlas was built from (same face order).
@@ -381,7 +385,12 @@ def _discrete_dual(bary: Tensor, area: Tensor, face: Tensor, chart: Tensor, face
     gram_w = torch.where(ok[:, None, None], gram_w, scale * (eye + 1.0))
     m = (face_area[:, None, None] / 3.0) * torch.linalg.inv(gram_w)  # continuum: 4 I - 1 1^T
     shape = torch.einsum("nab,nb->na", m[f], b) * w[:, None]
-    fallback = (4.0 * b - 1.0) * a[:, None]
+    # a face too thin or small for the discrete dual (a graded mesh's row beside a crease, 1-3 texels across)
+    # projects its mean instead: each hat gets A_f / 3 times the face's area-weighted texel mean, so that a constant
+    # is that constant at every vertex; the continuum dual (4 beta - 1) A on so few texels came out 5-10% low on the
+    # rim-lit slab's rows at atlas 1024
+    total = torch.zeros(nf, dtype=torch.float64, device=b.device).index_add_(0, f, a)
+    fallback = (a * (face_area / 3.0)[f] / total[f].clamp_min(tiny))[:, None].expand(-1, 3)
     out = torch.zeros(*bary.shape[1:], 3, dtype=torch.float64, device=b.device)
     out[chart] = torch.where(ok[f][:, None], shape, fallback)
     return out.permute(2, 0, 1)
@@ -435,6 +444,16 @@ def _absolute_threshold(vertex_area64: Tensor, profile: Callable[[Tensor], Tenso
     return threshold * _disk_mean_peak(profile, float(vertex_area64.max()), vertex_area64.device)
 
 
+def _cut_weight(va: Tensor, cut_area: float | None) -> Tensor:
+    """The areas the threshold is applied with: :math:`\\max(A_i/3, a)` (``cut_area`` a; None: the areas)."""
+    if cut_area is None:
+        return va
+    if isinstance(cut_area, bool) or not isinstance(cut_area, numbers.Real) or not math.isfinite(cut_area) \
+            or cut_area < 0:
+        raise ValueError(f"cut_area: expected a finite number >= 0 (mm^2) or None, got {cut_area!r}")
+    return va.clamp_min(float(cut_area))
+
+
 def _keep_radius(area: float, profile: Callable[[Tensor], Tensor], thr: float, device: torch.device) -> float:
     """Smallest r with ``area * max_c R_d(r) < thr`` (a bound on the kept distances), inf when thr <= 0."""
     if thr <= 0:
@@ -471,11 +490,12 @@ THROUGHPUT_THRESHOLD = 1e-5
 
 def estimate_throughput_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor], *,
                                 threshold: float = THROUGHPUT_THRESHOLD, relative: bool = True, rows: int = 128,
-                                seed: int = 0) -> int:
+                                seed: int = 0, cut_area: float | None = None) -> int:
     """The number of entries :func:`build_throughput` keeps, estimated from ``rows`` random source vertices.
 
-    Counts exactly which receivers each sampled source keeps (the same test as the build) and scales by the vertex
-    count; costs ``rows x N`` distances. Use it to refuse or re-plan before an atlas and a throughput are built.
+    Counts exactly which receivers each sampled source keeps (the same test as the build, ``cut_area`` as there) and
+    scales by the vertex count; costs ``rows x N`` distances. Use it to refuse or re-plan before an atlas and a
+    throughput are built.
 
     Examples:
         >>> from torchsss.geometry import sphere
@@ -502,7 +522,7 @@ def estimate_throughput_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor],
         for lo in range(0, idx.numel(), step):
             i = idx[lo:lo + step]
             d = _distance(v[i, None, :], v[None, :, :])
-            kept += int((va[i, None] * _max_rd(d, prof) >= thr).sum())
+            kept += int((_cut_weight(va[i], cut_area)[:, None] * _max_rd(d, prof) >= thr).sum())
     return round(kept * n / idx.numel())
 
 
@@ -594,7 +614,7 @@ def throughput_cut(mesh: Mesh, profile: Callable[[Tensor], Tensor], lights, eye,
 
 
 def check_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor], *, threshold: float, relative: bool,
-                  max_entries: int | None) -> int | None:
+                  max_entries: int | None, cut_area: float | None = None) -> int | None:
     """Raise a ValueError naming the way out when the throughput would keep more than ``max_entries`` entries.
 
     Returns the estimate (None when ``max_entries`` is None).
@@ -603,7 +623,7 @@ def check_entries(mesh: Mesh, profile: Callable[[Tensor], Tensor], *, threshold:
         return None
     if isinstance(max_entries, bool) or not isinstance(max_entries, numbers.Integral) or max_entries < 1:
         raise ValueError(f"max_entries: expected a positive int or None, got {max_entries!r}")
-    est = estimate_throughput_entries(mesh, profile, threshold=threshold, relative=relative)
+    est = estimate_throughput_entries(mesh, profile, threshold=threshold, relative=relative, cut_area=cut_area)
     if est > max_entries:
         # entries grow like the square of the vertex count where the profile reaches across the object
         faces = max(4, int(mesh.num_faces * math.sqrt(max_entries / est)))
@@ -626,6 +646,7 @@ def build_throughput(
     max_memory_mb: float = 64.0,
     max_entries: int | None = MAX_THROUGHPUT_ENTRIES,
     progress: bool = False,
+    cut_area: float | None = None,
 ) -> Throughput:
     """Sparse vertex-to-vertex throughput pattern of Lensch §5.2 / §6.2.
 
@@ -657,6 +678,11 @@ def build_throughput(
         max_entries: Refuse (ValueError, before allocating) when :func:`estimate_throughput_entries` predicts more
             kept entries than this (default :data:`MAX_THROUGHPUT_ENTRIES`, about 1-2 GB); None: no cap.
         progress: Show a tqdm bar over the blocks.
+        cut_area: the threshold tests :math:`\\max(A_i/3, a)\\,\\max_c R_d` instead of :math:`\\max_c F_{ij}`
+            (mm^2; None: a = 0): a source smaller than ``a`` keeps the reach of one of area ``a``. A mesh graded
+            towards its creases (:func:`~torchsss.geometry.refine.refine_creases`) passes its coarse hats' median
+            area, so that its fine hats beside a crease do not lose the far field the coarse ones keep (without it,
+            the rim-lit cream slab's far side got none of the rim's light).
 
     Returns:
         :class:`Throughput` with entries sorted by (row, col).
@@ -684,7 +710,7 @@ def build_throughput(
         raise TypeError(f"max_memory_mb: expected a positive number, got {type(max_memory_mb).__name__}")
     if not math.isfinite(float(max_memory_mb)) or max_memory_mb <= 0:
         raise ValueError(f"max_memory_mb: expected a positive finite number, got {max_memory_mb!r}")
-    check_entries(mesh, profile, threshold=threshold, relative=relative, max_entries=max_entries)
+    check_entries(mesh, profile, threshold=threshold, relative=relative, max_entries=max_entries, cut_area=cut_area)
     prof, channels = _profile64(profile, mesh.vertices.device)
     n = mesh.num_vertices
     if block_rows is None:
@@ -699,7 +725,8 @@ def build_throughput(
     v = mesh.vertices.detach().to(torch.float64)
     va = mesh.vertex_areas.detach().to(torch.float64)
     thr = _absolute_threshold(va, prof, threshold, relative)
-    radius = _keep_radius(float(va.max()), prof, thr, v.device)
+    va_cut = _cut_weight(va, cut_area)
+    radius = _keep_radius(float(va_cut.max()), prof, thr, v.device)
     diagonal = float((v.amax(0) - v.amin(0)).norm())
     rows, cols, dists = [], [], []
     if radius < 0.5 * diagonal:
@@ -736,7 +763,7 @@ def build_throughput(
             order = torch.argsort(r_idx * n + c_idx)
             r_idx, c_idx = r_idx[order], c_idx[order]
             d = _distance(v[r_idx], v[c_idx])
-            keep = va[r_idx] * _max_rd(d, prof) >= thr
+            keep = va_cut[r_idx] * _max_rd(d, prof) >= thr
             if zero_diagonal:
                 keep &= r_idx != c_idx
             if bool(keep.any()):
@@ -755,7 +782,7 @@ def build_throughput(
     for lo in tqdm(range(0, n, block_rows), desc="throughput", unit="block", disable=not progress):
         hi = min(n, lo + block_rows)
         d = _distance(v[lo:hi, None, :], v[None, :, :])  # (b, N)
-        f = va[lo:hi, None] * _max_rd(d, prof)
+        f = va_cut[lo:hi, None] * _max_rd(d, prof)
         keep = f >= thr
         if zero_diagonal:
             keep &= torch.arange(lo, hi, device=v.device)[:, None] != all_cols[None, :]
@@ -1092,16 +1119,25 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     Args:
         mesh: the throughput's mesh (mm).
         throughput: :func:`build_throughput` of it.
-        radius_mm: integrate the entries with :math:`|v_i - v_j|` up to this term by term (mm); default 2 median
-            edges.
+        radius_mm: integrate the entries with :math:`|v_i - v_j|` up to this term by term (mm); default (None) per
+            source: 2 median lengths of the edges at :math:`v_i` (on a uniform mesh about 2 median edges), or twice
+            the longest edge of a sliver at :math:`v_i` (a row of :func:`~torchsss.geometry.refine.refine_creases`:
+            a hat as long as its distance to the receiver is beyond the moment rule).
         subdivisions: n of the regular rule (>= 1).
         duffy: the Duffy rule's Gauss points along and across (each >= 1).
         scale_mm: the profile's shortest length (e.g. its spacing at 1%, :meth:`DipoleMaterial.spacing`), or
-            None. Given, the rules grow where the median edge L is long against it: the Duffy rule's radial points
+            None. Given, each pair's rule grows where its face is large against it: the Duffy rule's radial points
             are repeated on :math:`\lceil \log_4(4L/s)\rceil` (at most 10) intervals graded by 4 towards its apex
             (a peak far narrower than a face is resolved), its angular points grow to :math:`\lceil 1.5L/s\rceil`
-            (at most 12), the regular rule to :math:`\lceil L/s\rceil` (at most 8), never below ``duffy`` and
-            ``subdivisions``.
+            (at most 12), the regular rule to :math:`\lceil L/\max(s, g/5)\rceil` (at most 8), with L the face's
+            middle edge (on a uniform mesh about the median edge, the single L of every face until 2026-12-07) and g
+            the receiver's distance from the sphere around the face, never below ``duffy`` and ``subdivisions``. A
+            sliver (its longest edge over 3 times its shortest: the rows of
+            :func:`~torchsss.geometry.refine.refine_creases`) takes a collapsed Gauss rule instead, its apex
+            opposite the shortest edge, :math:`\lceil 2L_{max}/g\rceil` points along (at most 24; at least
+            ``subdivisions`` within half its length of the receiver, 2 beyond) and :math:`\lceil 2L_{min}/g\rceil`
+            across (1-8), g the larger of s and the receiver's distance from the face. The regular rule takes at
+            least 2 (not ``subdivisions``) on a face farther than its middle edge from the receiver.
         max_terms: refuse (ValueError) more quadrature terms than this (memory: 12 bytes a term in float32).
 
     Returns:
@@ -1131,25 +1167,35 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
         raise TypeError(f"duffy: expected a tuple of two ints, got {duffy!r}")
     nu, nv = (_check_int_arg(x, "duffy", 1) for x in duffy)
     max_terms = _check_int_arg(max_terms, "max_terms", 1)
+    scale = None
     if scale_mm is not None:
         if isinstance(scale_mm, bool) or not isinstance(scale_mm, numbers.Real) or not math.isfinite(scale_mm) \
                 or scale_mm <= 0:
             raise ValueError(f"scale_mm: expected a finite number > 0 or None, got {scale_mm!r}")
-        ratio = _median_edge(mesh) / float(scale_mm)
-        levels = int(min(10, max(0, math.ceil(math.log(max(4.0 * ratio, 1.0), 4.0)))))
-        nv = max(nv, min(12, math.ceil(1.5 * ratio)))
-        n = max(n, min(8, math.ceil(ratio)))
-    else:
-        levels = 0
+        scale = float(scale_mm)
     v = mesh.vertices.detach().to(torch.float64)
     faces = mesh.faces
     device = v.device
     if radius_mm is None:
-        radius_mm = 2.0 * _median_edge(mesh)
-    if isinstance(radius_mm, bool) or not isinstance(radius_mm, numbers.Real) or not math.isfinite(radius_mm) \
-            or radius_mm < 0:
-        raise ValueError(f"radius_mm: expected a finite number >= 0, got {radius_mm!r}")
-    near = (throughput.distance.to(torch.float64) <= float(radius_mm)).nonzero()[:, 0]
+        reach = 2.0 * _vertex_median_edge(mesh)  # per source vertex
+        # a hat with a sliver (a graded mesh's row beside a crease) reaches as far as its longest edge: the moment
+        # rule of a hat as long as its distance to the receiver was 13% off on the rim-lit slab
+        tri64 = mesh.vertices.detach().to(torch.float64)[mesh.faces]
+        el = torch.stack([(tri64[:, (k + 1) % 3] - tri64[:, k]).norm(dim=-1) for k in range(3)], 1)
+        sliver_face = el.max(1).values > 3.0 * el.min(1).values
+        if bool(sliver_face.any()):
+            longest_at = torch.zeros(mesh.num_vertices, dtype=torch.float64, device=mesh.vertices.device)
+            fl = torch.where(sliver_face, el.max(1).values, torch.zeros_like(el[:, 0]))
+            for k in range(3):
+                longest_at.scatter_reduce_(0, mesh.faces[:, k], fl, "amax")
+            reach = torch.maximum(reach, 2.0 * longest_at)
+        near = (throughput.distance.to(torch.float64) <= reach[throughput.rows]).nonzero()[:, 0]
+        radius_mm = float(reach.max()) if reach.numel() else 0.0
+    else:
+        if isinstance(radius_mm, bool) or not isinstance(radius_mm, numbers.Real) or not math.isfinite(radius_mm) \
+                or radius_mm < 0:
+            raise ValueError(f"radius_mm: expected a finite number >= 0, got {radius_mm!r}")
+        near = (throughput.distance.to(torch.float64) <= float(radius_mm)).nonzero()[:, 0]
     rows, cols = throughput.rows[near], throughput.cols[near]
     # the one-ring of every vertex as (face, corner) pairs, grouped by vertex (CSR)
     corner_vertex = faces.reshape(-1)
@@ -1174,9 +1220,6 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     area = mesh.face_areas.detach().to(torch.float64)[pf]
     # regular rule where the face does not hold j
     reg = (~has_j).nonzero()[:, 0]
-    bary = subdivision_barycentrics(n, dtype=torch.float64, device=device)  # (n^2, 3)
-    gu, wu = _gauss01(nu, levels)
-    gv, wv = _gauss01(nv)
     # the hat moments of every vertex in closed form (the monomials of the barycentrics integrate exactly: the hat
     # lambda_k times lambda_k^2, lambda_k lambda_m, lambda_a lambda_b over a face give A/10, A/30, A/60), in
     # coordinates relative to the hat's own vertex (q_k = 0)
@@ -1208,69 +1251,138 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
         for out, part in zip((c_dist, r_var, t_var), parts):
             out[lo:lo + step] = part.to(dtype)
         del parts
-    terms = int(reg.numel()) * n * n + int(has_j.sum()) * gu.numel() * nv
+    has_j_rows = has_j.nonzero()[:, 0]
+    # every pair's rule, from its face's size against the profile's shortest length (``scale_mm``) or, for the
+    # regular rule, a fifth of the receiver's distance from the face if that is longer (on the coarse marble sphere of
+    # tests/test_lensch_detail.py within 0.22% of a 576-point rule with 25% fewer terms than the uniform order; half
+    # the distance was 1.1% off): the regular rule's order and the Duffy rule's grading and angular points from the
+    # face's middle edge; without ``scale_mm`` the given orders everywhere
+    n_reg = torch.full((reg.numel(),), n, dtype=torch.int64, device=device)
+    # a sliver (a face of a mesh graded towards its creases, longest edge over 3x its shortest) takes a collapsed
+    # Gauss rule instead: the apex opposite its shortest edge, n_u points along it and n_v across
+    sliver = torch.zeros(reg.numel(), dtype=torch.bool, device=device)
+    nu_sl = torch.zeros(reg.numel(), dtype=torch.int64, device=device)
+    nv_sl = torch.zeros(reg.numel(), dtype=torch.int64, device=device)
+    lev_duf = torch.zeros(has_j_rows.numel(), dtype=torch.int64, device=device)
+    nv_duf = torch.full((has_j_rows.numel(),), nv, dtype=torch.int64, device=device)
+    if scale is not None:
+        tri_all = v[faces]
+        edge_len = torch.stack([(tri_all[:, (k + 1) % 3] - tri_all[:, k]).norm(dim=-1) for k in range(3)], 1)
+        longest = edge_len.max(1).values
+        shortest = edge_len.min(1).values
+        middle = edge_len.median(1).values
+        fr = pf[reg]
+        cen = tri_all.mean(1)
+        rad = (tri_all - cen[:, None]).norm(dim=-1).max(1).values
+        gap = ((v[j[reg]] - cen[fr]).norm(dim=-1) - rad[fr]).clamp_min(0.0)
+        n_reg = torch.ceil(middle[fr] / torch.maximum(gap / 5.0, torch.full_like(gap, scale))).to(torch.int64)
+        # at least the given order next to the receiver, 2 beyond a face's size from it
+        floor = torch.where(gap < middle[fr], torch.full_like(n_reg, n), torch.full_like(n_reg, min(n, 2)))
+        n_reg = torch.maximum(n_reg, floor).clamp_max(max(n, 8))
+        sliver = longest[fr] > 3.0 * shortest[fr]
+        if bool(sliver.any()):
+            t = tri_all[fr[sliver]]
+            bc = closest_point_on_triangle(v[j[reg[sliver]]], t[:, 0], t[:, 1], t[:, 2])
+            near_gap = (v[j[reg[sliver]]] - torch.einsum("pk,pkd->pd", bc, t)).norm(dim=-1).clamp_min(scale)
+            long_sl = longest[fr[sliver]]
+            nu_sl[sliver] = torch.maximum(torch.ceil(2.0 * long_sl / near_gap).to(torch.int64),
+                                          torch.where(near_gap < 0.5 * long_sl, n, 2)).clamp_max(24)
+            nv_sl[sliver] = torch.ceil(2.0 * shortest[fr[sliver]] / near_gap).to(torch.int64).clamp(1, 8)
+        ratio = middle[pf[has_j_rows]] / scale
+        lev_duf = torch.ceil(torch.log(torch.clamp(4.0 * ratio, min=1.0)) / math.log(4.0)).to(torch.int64).clamp(0, 10)
+        nv_duf = torch.ceil(1.5 * ratio).to(torch.int64).clamp(nv, max(nv, 12))
+    pair_terms = torch.zeros(pair_entry.numel(), dtype=torch.int64, device=device)
+    pair_terms[reg] = torch.where(sliver, nu_sl * nv_sl, n_reg * n_reg)
+    pair_terms[has_j_rows] = nu * (lev_duf + 1) * nv_duf
+    terms = int(pair_terms.sum())
     if terms > max_terms:
         raise ValueError(f"max_terms: expected at most {max_terms} quadrature terms, got {terms} ({near.numel()} "
                          f"entries within {radius_mm:.3g} mm); lower radius_mm or subdivisions")
-    block = max(1, (1 << 21) // max(n * n, gu.numel() * nv))  # rows per block: about 2M terms of float64 at a time
-    # the terms are written straight into their place in the output, sorted by entry: an entry's regular terms (its
-    # pairs in order) and then its Duffy terms (the order of a stable sort of the two rules' terms by entry; the
-    # parts, their concatenation, the sort and the sorted copies peaked at 4-5 times the output, 0.5 GB on the
-    # default scene's 10.7M terms at atlas 1024)
-    nq = gu.numel() * nv
-    entries_n = near.numel()
-    has_j_rows = has_j.nonzero()[:, 0]
-
-    def ranks(sel: Tensor) -> tuple[Tensor, Tensor]:
-        e = pair_entry[sel]
-        cnt = torch.bincount(e, minlength=entries_n)
-        return cnt, torch.arange(sel.numel(), device=device) - (torch.cumsum(cnt, 0) - cnt)[e]
-
-    reg_count, reg_rank = ranks(reg)
-    duf_count, duf_rank = ranks(has_j_rows)
-    per_entry = reg_count * (n * n) + duf_count * nq
-    entry_start = torch.cumsum(per_entry, 0) - per_entry
-    term_entry = torch.repeat_interleave(torch.arange(entries_n, device=device, dtype=torch.int32), per_entry)
+    # the terms are written straight into their place in the output, in the order of the pairs (sorted by entry: the
+    # terms are too); the parts, their concatenation, a sort and the sorted copies peaked at 4-5 times the output
+    pair_start = torch.cumsum(pair_terms, 0) - pair_terms
+    term_entry = torch.repeat_interleave(pair_entry.to(torch.int32), pair_terms)
     distance = torch.empty(terms, dtype=dtype, device=device)
     weight = torch.empty(terms, dtype=dtype, device=device)
-    reg_at = entry_start[pair_entry[reg]] + reg_rank * (n * n)  # first term of every regular pair
-    duf_at = entry_start[pair_entry[has_j_rows]] + reg_count[pair_entry[has_j_rows]] * (n * n) + duf_rank * nq
-    del reg_rank, duf_rank, per_entry, entry_start
-    for lo in range(0, reg.numel(), block):  # regular rule on faces without j
-        rb = reg[lo:lo + block]
-        tri = v[fv[rb]]  # (r, 3, 3)
-        pts = torch.einsum("qk,rkd->rqd", bary, tri)
-        hat = bary[:, pc[rb]].T  # (r, q): the barycentric of i
-        d_reg = (pts - v[j[rb]][:, None, :]).norm(dim=-1)
-        w_reg = area[rb][:, None] / (n * n) * hat
-        at = (reg_at[lo:lo + block][:, None] + torch.arange(n * n, device=device)).reshape(-1)
-        distance[at] = d_reg.reshape(-1).to(dtype)
-        weight[at] = w_reg.reshape(-1).to(dtype)
-    # Duffy rule with the apex at v_j where the face holds j
-    uu = gu[:, None].expand(gu.numel(), nv).reshape(-1).to(device)
-    vv = gv[None, :].expand(gu.numel(), nv).reshape(-1).to(device)
-    ww = (wu[:, None] * wv[None, :]).reshape(-1).to(device)
-    for lo in range(0, has_j_rows.numel(), block):
-        dj = has_j_rows[lo:lo + block]
-        fvd = fv[dj]
-        jj = j[dj]
-        apex_corner = (same[fvd] == same[jj][:, None]).to(torch.int64).argmax(1)
-        a_corner, b_corner = (apex_corner + 1) % 3, (apex_corner + 2) % 3
-        x0 = v[jj]
-        xa = v[fvd.gather(1, a_corner[:, None])[:, 0]]
-        xb = v[fvd.gather(1, b_corner[:, None])[:, 0]]
-        e1, e2 = xa - x0, xb - x0
-        direction = e1[:, None, :] + vv[None, :, None] * (e2 - e1)[:, None, :]  # (p, q, 3)
-        d_duf = uu[None, :] * direction.norm(dim=-1)
-        # the hat of i at s: barycentrics (1 - u, u (1 - v), u v) of (apex, a, b)
-        i_corner = pc[dj]
-        hat_duf = torch.where((i_corner == apex_corner)[:, None], 1.0 - uu[None, :],
-                              torch.where((i_corner == a_corner)[:, None], uu[None, :] * (1.0 - vv[None, :]),
-                                          uu[None, :] * vv[None, :]))
-        w_duf = 2.0 * area[dj][:, None] * uu[None, :] * ww[None, :] * hat_duf
-        at = (duf_at[lo:lo + block][:, None] + torch.arange(nq, device=device)).reshape(-1)
-        distance[at] = d_duf.reshape(-1).to(dtype)
-        weight[at] = w_duf.reshape(-1).to(dtype)
+    plain = ~sliver
+    for order in torch.unique(n_reg[plain]).tolist():  # regular rule on faces without j, by order
+        sel = reg[plain & (n_reg == order)]
+        bary = subdivision_barycentrics(order, dtype=torch.float64, device=device)  # (n^2, 3)
+        q = order * order
+        block = max(1, (1 << 21) // q)  # pairs per block: about 2M terms of float64 at a time
+        for lo in range(0, sel.numel(), block):
+            rb = sel[lo:lo + block]
+            tri = v[fv[rb]]  # (r, 3, 3)
+            pts = torch.einsum("qk,rkd->rqd", bary, tri)
+            hat = bary[:, pc[rb]].T  # (r, q): the barycentric of i
+            d_reg = (pts - v[j[rb]][:, None, :]).norm(dim=-1)
+            w_reg = area[rb][:, None] / q * hat
+            at = (pair_start[rb][:, None] + torch.arange(q, device=device)).reshape(-1)
+            distance[at] = d_reg.reshape(-1).to(dtype)
+            weight[at] = w_reg.reshape(-1).to(dtype)
+    if bool(sliver.any()):  # collapsed rule on slivers, by (n_u, n_v)
+        key_sl = nu_sl * 64 + nv_sl
+        for key in torch.unique(key_sl[sliver]).tolist():
+            sel = reg[sliver & (key_sl == key)]
+            gu_s, wu_s = _gauss01(key // 64)
+            gv_s, wv_s = _gauss01(key % 64)
+            uu = gu_s[:, None].expand(gu_s.numel(), gv_s.numel()).reshape(-1).to(device)
+            vv = gv_s[None, :].expand(gu_s.numel(), gv_s.numel()).reshape(-1).to(device)
+            ww = (wu_s[:, None] * wv_s[None, :]).reshape(-1).to(device)
+            q = uu.numel()
+            block = max(1, (1 << 21) // q)
+            for lo in range(0, sel.numel(), block):
+                rb = sel[lo:lo + block]
+                tri = v[fv[rb]]  # (r, 3, 3)
+                el = torch.stack([(tri[:, (k + 1) % 3] - tri[:, k]).norm(dim=-1) for k in range(3)], 1)
+                apex = (el.argmin(1) + 2) % 3  # the corner opposite the shortest edge (edge k: corner k -> k + 1)
+                ca, cb = (apex + 1) % 3, (apex + 2) % 3
+                x0 = tri.gather(1, apex[:, None, None].expand(-1, 1, 3))[:, 0]
+                xa = tri.gather(1, ca[:, None, None].expand(-1, 1, 3))[:, 0]
+                xb = tri.gather(1, cb[:, None, None].expand(-1, 1, 3))[:, 0]
+                pts = x0[:, None] + uu[None, :, None] * ((xa - x0)[:, None] + vv[None, :, None] * (xb - xa)[:, None])
+                d_sl = (pts - v[j[rb]][:, None, :]).norm(dim=-1)
+                ic = pc[rb]
+                hat = torch.where((ic == apex)[:, None], 1.0 - uu[None, :],
+                                  torch.where((ic == ca)[:, None], uu[None, :] * (1.0 - vv[None, :]),
+                                              uu[None, :] * vv[None, :]))
+                w_sl = 2.0 * area[rb][:, None] * uu[None, :] * ww[None, :] * hat
+                at = (pair_start[rb][:, None] + torch.arange(q, device=device)).reshape(-1)
+                distance[at] = d_sl.reshape(-1).to(dtype)
+                weight[at] = w_sl.reshape(-1).to(dtype)
+    # Duffy rule with the apex at v_j where the face holds j, by (grading, angular points)
+    rule = lev_duf * 64 + nv_duf
+    for key in torch.unique(rule).tolist():
+        pick = rule == key
+        sel = has_j_rows[pick]
+        gu, wu = _gauss01(nu, key // 64)
+        gv, wv = _gauss01(key % 64)
+        uu = gu[:, None].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
+        vv = gv[None, :].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
+        ww = (wu[:, None] * wv[None, :]).reshape(-1).to(device)
+        nq = uu.numel()
+        block = max(1, (1 << 21) // nq)
+        for lo in range(0, sel.numel(), block):
+            dj = sel[lo:lo + block]
+            fvd = fv[dj]
+            jj = j[dj]
+            apex_corner = (same[fvd] == same[jj][:, None]).to(torch.int64).argmax(1)
+            a_corner, b_corner = (apex_corner + 1) % 3, (apex_corner + 2) % 3
+            x0 = v[jj]
+            xa = v[fvd.gather(1, a_corner[:, None])[:, 0]]
+            xb = v[fvd.gather(1, b_corner[:, None])[:, 0]]
+            e1, e2 = xa - x0, xb - x0
+            direction = e1[:, None, :] + vv[None, :, None] * (e2 - e1)[:, None, :]  # (p, q, 3)
+            d_duf = uu[None, :] * direction.norm(dim=-1)
+            # the hat of i at s: barycentrics (1 - u, u (1 - v), u v) of (apex, a, b)
+            i_corner = pc[dj]
+            hat_duf = torch.where((i_corner == apex_corner)[:, None], 1.0 - uu[None, :],
+                                  torch.where((i_corner == a_corner)[:, None], uu[None, :] * (1.0 - vv[None, :]),
+                                              uu[None, :] * vv[None, :]))
+            w_duf = 2.0 * area[dj][:, None] * uu[None, :] * ww[None, :] * hat_duf
+            at = (pair_start[dj][:, None] + torch.arange(nq, device=device)).reshape(-1)
+            distance[at] = d_duf.reshape(-1).to(dtype)
+            weight[at] = w_duf.reshape(-1).to(dtype)
     moments = HatMoments(v.to(dtype), centroid.to(dtype), cov.to(dtype))
     return HatQuadrature(c_dist, r_var, t_var, near, term_entry, distance, weight, float(radius_mm), moments)
 
@@ -1527,7 +1639,7 @@ def plan_kernel_size(mesh: Mesh, resolution: int, *, reach: float = 0.7, k_min: 
         raise ValueError(f"reach: expected a positive number, got {reach!r}")
     if not (0.0 < float(utilization) <= 1.0):
         raise ValueError(f"utilization: expected a number in (0, 1], got {utilization!r}")
-    edge = _median_edge(mesh)
+    edge = median_edge(mesh)
     texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
     half = round(float(reach) * edge / texel) if texel > 0 else k_min // 2
     return int(min(max(2 * half + 1, k_min), k_max))
@@ -1539,7 +1651,24 @@ def plan_kernel_size(mesh: Mesh, resolution: int, *, reach: float = 0.7, k_min: 
 BLEND_MIN_REACH = 0.5
 
 
-def _median_edge(mesh: Mesh) -> float:
+def _vertex_median_edge(mesh: Mesh) -> Tensor:
+    """:math:`(V,)` float64: the median length of the edges at every vertex (each edge counted once per face)."""
+    f = mesh.faces
+    v = mesh.vertices.detach().to(torch.float64)
+    a = torch.cat([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
+    b = torch.cat([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
+    length = (v[a] - v[b]).norm(dim=1)
+    order = torch.argsort(a * (length.max() + 1.0 if length.numel() else 1.0) + length)  # by vertex, then length
+    a, length = a[order], length[order]
+    counts = torch.bincount(a, minlength=mesh.num_vertices)
+    start = torch.cumsum(counts, 0) - counts
+    mid = (start + torch.div(counts - 1, 2, rounding_mode="floor")).clamp_min(0)
+    out = length[mid.clamp_max(max(length.numel() - 1, 0))] if length.numel() else v.new_zeros(mesh.num_vertices)
+    return torch.where(counts > 0, out, torch.zeros_like(out))
+
+
+def median_edge(mesh: Mesh) -> float:
+    """The median edge length of ``mesh`` (mm; every face's three edges)."""
     f = mesh.faces
     edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     v = mesh.vertices.detach().to(torch.float64)
@@ -1578,5 +1707,5 @@ def kernel_reach(mesh: Mesh, resolution: int, kernel_size: int, *, utilization: 
         True
     """
     texel = math.sqrt(float(mesh.area) / (float(utilization) * resolution * resolution))
-    edge = _median_edge(mesh)
+    edge = median_edge(mesh)
     return (kernel_size // 2) * texel / edge if edge > 0 else math.inf

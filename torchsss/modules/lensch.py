@@ -954,6 +954,41 @@ class LenschTranslucency(nn.Module):
         """The shared material module."""
         return self.local.material
 
+    def split(self, irradiance: Tensor) -> tuple[Tensor, Tensor]:
+        """The radiosity in its two parts: ``(atlas, vertex)``, :math:`(B, C, H, W)` and :math:`(B, N, C)`.
+
+        :meth:`forward` is ``atlas + global_response.reconstruct(vertex)``: the local kernels' part (and nothing
+        else) on the atlas, the vertex radiosity (with blending's direct part) on the vertices, so that a caller can
+        interpolate the vertex part at any surface point of the hat mesh instead of through the atlas's texels
+        (:class:`~torchsss.pipelines.lensch.LenschRenderer` does, at every pixel). Without a surface texture only.
+
+        Raises:
+            ValueError: the module has a surface texture (``albedo``), and as :meth:`forward`.
+        """
+        if self.albedo is not None:
+            raise ValueError("split: expected a module without albedo (the textured radiosity is an atlas product), "
+                             "got one with albedo")
+        check_tensor(irradiance, "irradiance")
+        check_shape(irradiance, "irradiance", "B,C,H,W", H=self.local.height, W=self.local.width)
+        check_finite(irradiance, "irradiance")
+        g = self.global_response
+        eg = g.vertex_irradiance(irradiance)
+        vert = self._vertex(irradiance, eg)
+        local = self.local(irradiance - g.reconstruct(eg)) if self.detail else self.local(irradiance)
+        return local, vert
+
+    def _vertex(self, irradiance: Tensor, eg: Tensor) -> Tensor:
+        """:math:`(B, N, C)` vertex radiosity, with blending's direct part."""
+        g = self.global_response
+        vert = g.vertex_radiosity(irradiance, eg)
+        if self.direct is not None:
+            b, c = irradiance.shape[:2]
+            src = (irradiance.reshape(b, c, 1, -1) * self.direct.reshape(1, c, 3, -1)).reshape(b, c, -1)
+            idx = g.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
+            bd = torch.zeros(b, c, g.num_vertices, dtype=src.dtype, device=src.device).scatter_add(2, idx, src)
+            vert = vert + bd.transpose(1, 2)
+        return vert
+
     def forward(self, irradiance: Tensor) -> Tensor:
         """:math:`(B, C, H, W)` irradiance atlas -> :math:`(B, C, H, W)` radiosity atlas.
 
@@ -968,13 +1003,7 @@ class LenschTranslucency(nn.Module):
         check_finite(irradiance, "irradiance")
         g = self.global_response
         eg = g.vertex_irradiance(irradiance)
-        vert = g.vertex_radiosity(irradiance, eg)
-        if self.direct is not None:
-            b, c = irradiance.shape[:2]
-            src = (irradiance.reshape(b, c, 1, -1) * self.direct.reshape(1, c, 3, -1)).reshape(b, c, -1)
-            idx = g.vertex_ids.reshape(1, 1, -1).expand(b, c, -1)
-            bd = torch.zeros(b, c, g.num_vertices, dtype=src.dtype, device=src.device).scatter_add(2, idx, src)
-            vert = vert + bd.transpose(1, 2)
+        vert = self._vertex(irradiance, eg)
         if self.albedo is not None:
             vert = vert / self.albedo_at_vertices.unsqueeze(0)
             glob = g.reconstruct(vert) * self.albedo
