@@ -274,12 +274,12 @@ def test_rim_lit_small_slab_against_the_reference():
 
 @pytest.mark.slow
 def test_rim_lit_slab_against_the_reference():
-    """The spread's 25 mm rim-lit slab at 64 x 64, atlas 1024, rows at ratio 1.6 (no entry cap): 18.4% -> 4.9%
-    measured 2026-12-06 with the rows read from the atlas linearly (at 256 x 256 with the renderer's defaults 18.8%
-    -> 3.06%, benchmarks/results/spread_lensch_refine.md); the adaptive reading no worse than the linear one; the
-    image mean within 2%."""
+    """The spread's 25 mm rim-lit slab at 64 x 64, atlas 1024, rows at ratio 1.6 (no entry cap): measured 7.1% ->
+    2.95% (3.28% with the rows interpolated linearly; 18.4% before the vertex radiosity was read at each pixel); at
+    256 x 256 with the renderer's defaults 7.3% -> 3.06% (benchmarks/results/spread_lensch_refine.md); the image
+    mean within 2%."""
     e_plain, e_graded, e_linear, mean = _rim_lit_slab(25.0, 64, 1024)
     assert e_graded < e_linear
-    assert e_plain > 0.12  # the hats cannot follow the radiosity beside the lit crease
-    assert e_graded < 0.35 * e_plain and e_graded < 0.07
+    assert e_plain > 0.05  # the hats cannot follow the radiosity beside the lit crease
+    assert e_graded < 0.5 * e_plain and e_graded < 0.04
     assert mean == pytest.approx(1.0, abs=0.02)
