@@ -360,8 +360,9 @@ def _discrete_dual(bary: Tensor, area: Tensor, face: Tensor, chart: Tensor, face
 
     See :func:`vertex_weights`: the texel weights :math:`w = A + \\beta^T\\lambda_f` integrate the face's three hats
     exactly (:math:`\\sum w \\beta = A_f/3\\,1`), and :math:`M_f = (A_f/3)\\,G_f^{-1}` with :math:`G_f = \\sum w
-    \\beta\\beta^T`; elsewhere (and on faces with fewer than 3 texels or a near-singular Gram matrix) the continuum
-    :math:`(4\\beta - 1) A`.
+    \\beta\\beta^T`. A face with fewer than 3 texels or a near-singular Gram matrix (a graded mesh's row beside a
+    crease, 1-3 texels across) projects its mean instead: each of its hats gets :math:`A_f/3` times the face's
+    area-weighted texel mean (a constant stays that constant at every vertex).
     """
     b = bary.to(torch.float64).permute(1, 2, 0)[chart]  # (n, 3)
     a = area.to(torch.float64)[chart]
