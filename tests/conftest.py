@@ -171,3 +171,13 @@ def caustic_plane_inputs(g: int = 8, half: float = 10.0) -> dict[str, torch.Tens
     return {"front_position": surface, "front_normal": normal, "front_mask": mask, "back_position": surface.clone(),
             "back_normal": normal.clone(), "back_mask": mask.clone(), "receiver_position": floor, "light": light,
             "intensity": torch.ones(1, 1, dtype=torch.float64), "view_proj": vp}
+
+
+def loop_edge_faces(faces: list[list[int]]) -> dict[tuple[int, int], list[int]]:
+    """Loop reference: every undirected edge ``(min, max)`` and the faces that hold it, in face order."""
+    out: dict[tuple[int, int], list[int]] = {}
+    for i, tri in enumerate(faces):
+        for k in range(3):
+            a, b = tri[k], tri[(k + 1) % 3]
+            out.setdefault((min(a, b), max(a, b)), []).append(i)
+    return out

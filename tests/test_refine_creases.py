@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import loop_edge_faces
 
 from torchsss.geometry.mesh import Mesh, split_creases
 from torchsss.geometry.procedural import plane, slab, sphere
@@ -17,13 +18,8 @@ F64 = torch.float64
 
 def _loop_features(mesh: Mesh, crease_deg: float) -> set[tuple[int, int]]:
     """Loop reference: every edge with one face, more than two, or two whose normals turn by more than the crease."""
-    faces = mesh.faces.tolist()
     normals = mesh.face_normals.double()
-    around: dict[tuple[int, int], list[int]] = {}
-    for f, tri in enumerate(faces):
-        for k in range(3):
-            a, b = tri[k], tri[(k + 1) % 3]
-            around.setdefault((min(a, b), max(a, b)), []).append(f)
+    around = loop_edge_faces(mesh.faces.tolist())
     out = set()
     for e, fs in around.items():
         if len(fs) != 2 or float(normals[fs[0]] @ normals[fs[1]]) < math.cos(math.radians(crease_deg)):

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import loop_edge_faces
 
 from torchsss.geometry import build_atlas, sphere
 from torchsss.geometry.lensch import build_throughput, hat_quadrature, vertex_weights
@@ -24,11 +25,7 @@ def _loop_fans(mesh: Mesh, crease_deg: float) -> set[frozenset[tuple[int, int]]]
     f = mesh.faces.tolist()
     n = mesh.face_normals.double()
     cos = math.cos(math.radians(crease_deg))
-    edge_faces: dict[tuple[int, int], list[int]] = {}
-    for i, face in enumerate(f):
-        for k in range(3):
-            a, b = face[k], face[(k + 1) % 3]
-            edge_faces.setdefault((min(a, b), max(a, b)), []).append(i)
+    edge_faces = loop_edge_faces(f)
     fans = set()
     for vert in range(mesh.num_vertices):
         corners = {i: face.index(vert) for i, face in enumerate(f) if vert in face}

@@ -1073,6 +1073,19 @@ class HatQuadrature(NamedTuple):
     moments: HatMoments | None = None
 
 
+def _edge_lengths(tri: Tensor) -> Tensor:
+    """:math:`(F, 3)` the lengths of edge k (corner k -> k + 1) of triangles :math:`(F, 3, 3)`."""
+    return torch.stack([(tri[:, (k + 1) % 3] - tri[:, k]).norm(dim=-1) for k in range(3)], 1)
+
+
+def _gauss_grid(u: tuple[Tensor, Tensor], v: tuple[Tensor, Tensor], device) -> tuple[Tensor, Tensor, Tensor]:
+    """The tensor product of two 1-D rules ``(points, weights)`` on [0, 1]^2: flat ``(uu, vv, ww)`` on ``device``."""
+    (gu, wu), (gv, wv) = u, v
+    uu = gu[:, None].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
+    vv = gv[None, :].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
+    return uu, vv, (wu[:, None] * wv[None, :]).reshape(-1).to(device)
+
+
 def _gauss01(n: int, levels: int = 0) -> tuple[Tensor, Tensor]:
     """Gauss-Legendre on [0, 1]: ``n`` points on each of ``levels + 1`` intervals graded by 4 towards 0.
 
@@ -1177,12 +1190,13 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     v = mesh.vertices.detach().to(torch.float64)
     faces = mesh.faces
     device = v.device
+    tri_all = v[faces]
+    edge_len = _edge_lengths(tri_all)  # (F, 3)
     if radius_mm is None:
         reach = 2.0 * _vertex_median_edge(mesh)  # per source vertex
         # a hat with a sliver (a graded mesh's row beside a crease) reaches as far as its longest edge: the moment
         # rule of a hat as long as its distance to the receiver was 13% off on the rim-lit slab
-        tri64 = mesh.vertices.detach().to(torch.float64)[mesh.faces]
-        el = torch.stack([(tri64[:, (k + 1) % 3] - tri64[:, k]).norm(dim=-1) for k in range(3)], 1)
+        el = edge_len
         sliver_face = el.max(1).values > 3.0 * el.min(1).values
         if bool(sliver_face.any()):
             longest_at = torch.zeros(mesh.num_vertices, dtype=torch.float64, device=mesh.vertices.device)
@@ -1267,8 +1281,6 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     lev_duf = torch.zeros(has_j_rows.numel(), dtype=torch.int64, device=device)
     nv_duf = torch.full((has_j_rows.numel(),), nv, dtype=torch.int64, device=device)
     if scale is not None:
-        tri_all = v[faces]
-        edge_len = torch.stack([(tri_all[:, (k + 1) % 3] - tri_all[:, k]).norm(dim=-1) for k in range(3)], 1)
         longest = edge_len.max(1).values
         shortest = edge_len.min(1).values
         middle = edge_len.median(1).values
@@ -1325,18 +1337,13 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
         key_sl = nu_sl * 64 + nv_sl
         for key in torch.unique(key_sl[sliver]).tolist():
             sel = reg[sliver & (key_sl == key)]
-            gu_s, wu_s = _gauss01(key // 64)
-            gv_s, wv_s = _gauss01(key % 64)
-            uu = gu_s[:, None].expand(gu_s.numel(), gv_s.numel()).reshape(-1).to(device)
-            vv = gv_s[None, :].expand(gu_s.numel(), gv_s.numel()).reshape(-1).to(device)
-            ww = (wu_s[:, None] * wv_s[None, :]).reshape(-1).to(device)
+            uu, vv, ww = _gauss_grid(_gauss01(key // 64), _gauss01(key % 64), device)
             q = uu.numel()
             block = max(1, (1 << 21) // q)
             for lo in range(0, sel.numel(), block):
                 rb = sel[lo:lo + block]
                 tri = v[fv[rb]]  # (r, 3, 3)
-                el = torch.stack([(tri[:, (k + 1) % 3] - tri[:, k]).norm(dim=-1) for k in range(3)], 1)
-                apex = (el.argmin(1) + 2) % 3  # the corner opposite the shortest edge (edge k: corner k -> k + 1)
+                apex = (edge_len[pf[rb]].argmin(1) + 2) % 3  # opposite the shortest edge
                 ca, cb = (apex + 1) % 3, (apex + 2) % 3
                 x0 = tri.gather(1, apex[:, None, None].expand(-1, 1, 3))[:, 0]
                 xa = tri.gather(1, ca[:, None, None].expand(-1, 1, 3))[:, 0]
@@ -1356,11 +1363,7 @@ def hat_quadrature(mesh: Mesh, throughput: Throughput, *, radius_mm: float | Non
     for key in torch.unique(rule).tolist():
         pick = rule == key
         sel = has_j_rows[pick]
-        gu, wu = _gauss01(nu, key // 64)
-        gv, wv = _gauss01(key % 64)
-        uu = gu[:, None].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
-        vv = gv[None, :].expand(gu.numel(), gv.numel()).reshape(-1).to(device)
-        ww = (wu[:, None] * wv[None, :]).reshape(-1).to(device)
+        uu, vv, ww = _gauss_grid(_gauss01(nu, key // 64), _gauss01(key % 64), device)
         nq = uu.numel()
         block = max(1, (1 << 21) // nq)
         for lo in range(0, sel.numel(), block):

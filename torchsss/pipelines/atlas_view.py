@@ -55,6 +55,8 @@ class AtlasView:
         self._camera: Camera | None = None
         self._uv: Tensor | None = None
         self._lit: tuple[Tensor, Tensor, Tensor] | None = None
+        self._points: tuple | None = None  # source_points' last camera, image size and (face, bary)
+        self._csr: tuple[Tensor, Tensor, Tensor] | None = None  # the children of every face of mesh (parent given)
 
     def lit_texels(self) -> tuple[Tensor, Tensor, Tensor]:
         """Where the lights meet the atlas's valid texels: ``(index, position, normal)``, built once.
@@ -104,7 +106,7 @@ class AtlasView:
                 and self._uv.shape[-2:] == position.shape[-2:]:
             return self._uv
         if self.parent is not None:
-            face, bary = self._children(face_id, position, mask)
+            face, bary = self.source_points(camera, face_id, position, mask)  # one search for both (cached)
             uv = position.new_zeros(1, 2, *position.shape[-2:])
             pix = (self.atlas.face_uvs.to(position.dtype)[face] * bary[..., None]).sum(1)  # (P, 2)
             uv[0, :, mask[0, 0]] = pix.T
@@ -129,7 +131,7 @@ class AtlasView:
             position: :math:`(1, 3, H, W)` G-buffer positions of ``mesh`` (mm).
             mask: :math:`(1, 1, H, W)` its coverage.
         """
-        hit = getattr(self, "_points", None)
+        hit = self._points
         if hit is not None and hit[0] == camera and hit[1] == tuple(position.shape[-2:]):
             return hit[2], hit[3]
         pts = position[0].permute(1, 2, 0)[mask[0, 0]].detach()
@@ -149,7 +151,7 @@ class AtlasView:
         """Every covered pixel's closest point among its own face's children in ``source``: ``(face, bary)``."""
         if face_id is None:
             raise ValueError("face_id: expected the camera G-buffer's face ids with a refined source, got None")
-        if getattr(self, "_csr", None) is None:
+        if self._csr is None:
             order = torch.argsort(self.parent, stable=True)
             counts = torch.bincount(self.parent, minlength=self.mesh.num_faces)
             self._csr = (order, torch.cumsum(counts, 0) - counts, counts)

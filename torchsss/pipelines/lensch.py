@@ -319,7 +319,7 @@ class LenschRenderer(Renderer):
         t0 = time.perf_counter()
         times = {}
 
-        hat_faces = getattr(self.built, "hat_faces", None)
+        hat_faces = self.built.hat_faces
         pixel_exact = hat_faces is not None and self.module.albedo is None
 
         def radiosity_atlas() -> Tensor | tuple[Tensor, Tensor]:  # depends on the lights and the material alone
